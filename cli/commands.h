@@ -1,0 +1,9 @@
+#pragma once
+
+// Subcommands of the `irmosaic` program; each lives in cli/cmd_<name>.cc and is listed in the
+// table in main.cc. Each takes the arguments after its name and returns the exit code.
+namespace irmosaic::cli {
+
+int RunFootprints(int argc, char** argv);
+
+}  // namespace irmosaic::cli

@@ -1,0 +1,48 @@
+#pragma once
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "irmosaic/camera.h"
+#include "irmosaic/export.h"
+
+namespace irmosaic {
+
+// A frame warped onto the mosaic plane, cropped to its footprint's bounding box.
+struct OrthoImage {
+  cv::Mat image;              // Same type as the input frame.
+  cv::Mat mask;               // CV_8U: 255 where the frame has data, 0 elsewhere.
+  cv::Point origin_px;        // Mosaic pixel (col, row) of image(0, 0).
+  Eigen::Matrix3d ortho_from_image = Eigen::Matrix3d::Identity();  // Undistorted px -> image px.
+
+  bool empty() const { return image.empty(); }
+};
+
+struct OrthoOptions {
+  int interpolation = cv::INTER_LINEAR;
+  int max_side_px = 8192;  // Larger orthoimages are refused (a footprint gone absurd).
+};
+
+// Warps `frame` (CV_8U, CV_16U or CV_32F, one channel) with the correction homography
+// `mosaic_from_image` (undistorted image px -> mosaic px). Lens distortion is undone in the
+// same resampling. Throws InputError for an empty or multi-channel frame or an absurd size.
+IRMOSAIC_EXPORT OrthoImage Orthorectify(const cv::Mat& frame, const CameraModel& camera,
+                                        const Eigen::Matrix3d& mosaic_from_image,
+                                        const OrthoOptions& options = {});
+
+// Reusable scratch space so the hot path allocates nothing once warm.
+class IRMOSAIC_EXPORT Orthorectifier {
+ public:
+  explicit Orthorectifier(CameraModel camera, OrthoOptions options = {});
+  // As the free function; `out`'s buffers are reused when sizes allow.
+  void Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image, OrthoImage* out);
+
+ private:
+  CameraModel camera_;
+  OrthoOptions options_;
+  cv::Mat full_mask_;
+  cv::Mat map_x_, map_y_;
+};
+
+}  // namespace irmosaic

@@ -1,0 +1,111 @@
+#include "irmosaic/orthorectify.h"
+
+#include <cmath>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "irmosaic/error.h"
+#include "irmosaic/frame_geometry.h"
+
+namespace irmosaic {
+
+Orthorectifier::Orthorectifier(CameraModel camera, OrthoOptions options)
+    : camera_(std::move(camera)), options_(options) {}
+
+void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image,
+                         OrthoImage* out) {
+  if (frame.empty() || frame.channels() != 1 ||
+      (frame.depth() != CV_8U && frame.depth() != CV_16U && frame.depth() != CV_32F)) {
+    throw InputError({"frame", 0, 0, ""}, "orthorectification needs a one-channel 8-bit, "
+                     "16-bit or float image", "convert the frame to grayscale");
+  }
+  if (!mosaic_from_image.allFinite()) {
+    throw InputError({"frame", 0, 0, ""}, "the correction homography is not finite",
+                     "check the frame's pose");
+  }
+  // Bounding box of the footprint: outer pixel edges sampled along each side (distortion
+  // can bow the sides outward).
+  const double w = frame.cols, h = frame.rows;
+  double min_x = INFINITY, min_y = INFINITY, max_x = -INFINITY, max_y = -INFINITY;
+  constexpr int kSamples = 8;
+  for (int s = 0; s <= kSamples; ++s) {
+    const double f = static_cast<double>(s) / kSamples;
+    for (const Eigen::Vector2d& raw : {Eigen::Vector2d(-0.5 + f * w, -0.5),
+                                      Eigen::Vector2d(-0.5 + f * w, h - 0.5),
+                                      Eigen::Vector2d(-0.5, -0.5 + f * h),
+                                      Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
+      const Eigen::Vector3d q = mosaic_from_image * camera_.Undistort(raw).homogeneous();
+      if (q.z() <= 0.0) {
+        throw InputError({"frame", 0, 0, ""}, "the frame's footprint crosses the horizon",
+                         "check the pose; frames looking at the sky cannot be mapped");
+      }
+      const Eigen::Vector2d p = q.hnormalized();
+      min_x = std::min(min_x, p.x());
+      max_x = std::max(max_x, p.x());
+      min_y = std::min(min_y, p.y());
+      max_y = std::max(max_y, p.y());
+    }
+  }
+  const int x0 = static_cast<int>(std::floor(min_x)), y0 = static_cast<int>(std::floor(min_y));
+  const double width = std::ceil(max_x) - x0 + 1, height = std::ceil(max_y) - y0 + 1;
+  if (!(width <= options_.max_side_px && height <= options_.max_side_px)) {
+    std::ostringstream problem;
+    problem << "the orthoimage would be " << width << " x " << height << " pixels";
+    throw InputError({"frame", 0, 0, ""}, problem.str(),
+                     "raise the ground sample distance or the size limit, or check the pose");
+  }
+  const cv::Size size(static_cast<int>(width), static_cast<int>(height));
+  Eigen::Matrix3d shift = Eigen::Matrix3d::Identity();
+  shift(0, 2) = -x0;
+  shift(1, 2) = -y0;
+  out->origin_px = {x0, y0};
+  out->ortho_from_image = shift * mosaic_from_image;
+  cv::Matx33d image_from_ortho;
+  const Eigen::Matrix3d inverse = out->ortho_from_image.inverse();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) image_from_ortho(r, c) = inverse(r, c);
+
+  if (!camera_.HasDistortion()) {
+    cv::warpPerspective(frame, out->image, image_from_ortho, size,
+                        options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+    if (full_mask_.size() != frame.size()) full_mask_ = cv::Mat(frame.size(), CV_8U, 255);
+    cv::warpPerspective(full_mask_, out->mask, image_from_ortho, size,
+                        cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    return;
+  }
+  // With distortion: ortho px -> undistorted px (homography) -> recorded px (lens model).
+  std::vector<cv::Point3d> rays(static_cast<size_t>(size.area()));
+  for (int y = 0; y < size.height; ++y) {
+    for (int x = 0; x < size.width; ++x) {
+      const cv::Vec3d q = image_from_ortho * cv::Vec3d(x, y, 1.0);
+      rays[static_cast<size_t>(y) * size.width + x] = {
+          (q[0] / q[2] - camera_.cx) / camera_.fx, (q[1] / q[2] - camera_.cy) / camera_.fy, 1.0};
+    }
+  }
+  std::vector<cv::Point2f> pixels;
+  const cv::Matx33d k(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+  cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), k, camera_.distortion, pixels);
+  map_x_.create(size, CV_32F);
+  map_y_.create(size, CV_32F);
+  for (int y = 0; y < size.height; ++y) {
+    for (int x = 0; x < size.width; ++x) {
+      const cv::Point2f& p = pixels[static_cast<size_t>(y) * size.width + x];
+      map_x_.at<float>(y, x) = p.x;
+      map_y_.at<float>(y, x) = p.y;
+    }
+  }
+  cv::remap(frame, out->image, map_x_, map_y_, options_.interpolation, cv::BORDER_REPLICATE);
+  if (full_mask_.size() != frame.size()) full_mask_ = cv::Mat(frame.size(), CV_8U, 255);
+  cv::remap(full_mask_, out->mask, map_x_, map_y_, cv::INTER_NEAREST, cv::BORDER_CONSTANT, 0);
+}
+
+OrthoImage Orthorectify(const cv::Mat& frame, const CameraModel& camera,
+                        const Eigen::Matrix3d& mosaic_from_image, const OrthoOptions& options) {
+  Orthorectifier worker(camera, options);
+  OrthoImage out;
+  worker.Run(frame, mosaic_from_image, &out);
+  return out;
+}
+
+}  // namespace irmosaic
