@@ -1,5 +1,6 @@
 #include "irmosaic/orthorectify.h"
 
+#include <array>
 #include <cmath>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
@@ -17,8 +18,10 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
                          OrthoImage* out) {
   if (frame.empty() || frame.channels() != 1 ||
       (frame.depth() != CV_8U && frame.depth() != CV_16U && frame.depth() != CV_32F)) {
-    throw InputError({"frame", 0, 0, ""}, "orthorectification needs a one-channel 8-bit, "
-                     "16-bit or float image", "convert the frame to grayscale");
+    throw InputError({"frame", 0, 0, ""},
+                     "orthorectification needs a one-channel 8-bit, "
+                     "16-bit or float image",
+                     "convert the frame to grayscale");
   }
   if (!mosaic_from_image.allFinite()) {
     throw InputError({"frame", 0, 0, ""}, "the correction homography is not finite",
@@ -31,10 +34,9 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   constexpr int kSamples = 8;
   for (int s = 0; s <= kSamples; ++s) {
     const double f = static_cast<double>(s) / kSamples;
-    for (const Eigen::Vector2d& raw : {Eigen::Vector2d(-0.5 + f * w, -0.5),
-                                      Eigen::Vector2d(-0.5 + f * w, h - 0.5),
-                                      Eigen::Vector2d(-0.5, -0.5 + f * h),
-                                      Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
+    for (const Eigen::Vector2d& raw :
+         {Eigen::Vector2d(-0.5 + f * w, -0.5), Eigen::Vector2d(-0.5 + f * w, h - 0.5),
+          Eigen::Vector2d(-0.5, -0.5 + f * h), Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
       const Eigen::Vector3d q = mosaic_from_image * camera_.Undistort(raw).homogeneous();
       if (q.z() <= 0.0) {
         throw InputError({"frame", 0, 0, ""}, "the frame's footprint crosses the horizon",
@@ -69,9 +71,21 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   if (!camera_.HasDistortion()) {
     cv::warpPerspective(frame, out->image, image_from_ortho, size,
                         options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
-    if (full_mask_.size() != frame.size()) full_mask_ = cv::Mat(frame.size(), CV_8U, 255);
-    cv::warpPerspective(full_mask_, out->mask, image_from_ortho, size,
-                        cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    // Without distortion the footprint is the quadrilateral of the outer pixel edges; filling
+    // it (sub-pixel vertices) costs a fraction of a second warp.
+    out->mask.create(size, CV_8U);
+    out->mask.setTo(0);
+    constexpr int kShift = 4;
+    std::array<cv::Point, 4> quad;
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(w - 0.5, -0.5),
+        Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
+    for (int c = 0; c < 4; ++c) {
+      const Eigen::Vector2d p = ApplyHomography(out->ortho_from_image, corners[c]);
+      quad[c] = cv::Point(static_cast<int>(std::lround(p.x() * (1 << kShift))),
+                          static_cast<int>(std::lround(p.y() * (1 << kShift))));
+    }
+    cv::fillConvexPoly(out->mask, quad.data(), 4, cv::Scalar(255), cv::LINE_8, kShift);
     return;
   }
   // With distortion: ortho px -> undistorted px (homography) -> recorded px (lens model).
@@ -83,16 +97,16 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
           (q[0] / q[2] - camera_.cx) / camera_.fx, (q[1] / q[2] - camera_.cy) / camera_.fy, 1.0};
     }
   }
-  std::vector<cv::Point2f> pixels;
+  std::vector<cv::Point2d> pixels;
   const cv::Matx33d k(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
   cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), k, camera_.distortion, pixels);
   map_x_.create(size, CV_32F);
   map_y_.create(size, CV_32F);
   for (int y = 0; y < size.height; ++y) {
     for (int x = 0; x < size.width; ++x) {
-      const cv::Point2f& p = pixels[static_cast<size_t>(y) * size.width + x];
-      map_x_.at<float>(y, x) = p.x;
-      map_y_.at<float>(y, x) = p.y;
+      const cv::Point2d& p = pixels[static_cast<size_t>(y) * size.width + x];
+      map_x_.at<float>(y, x) = static_cast<float>(p.x);
+      map_y_.at<float>(y, x) = static_cast<float>(p.y);
     }
   }
   cv::remap(frame, out->image, map_x_, map_y_, options_.interpolation, cv::BORDER_REPLICATE);

@@ -1,10 +1,11 @@
 // Camera file parsing and the lens model.
+#include "irmosaic/camera.h"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
 #include <fstream>
 
-#include "irmosaic/camera.h"
 #include "irmosaic/error.h"
 
 namespace irmosaic {

@@ -1,8 +1,8 @@
 // Geometry of the foundation: POS + camera -> correction homography on the mosaic plane.
-#include <GeographicLib/Geocentric.hpp>
-#include <GeographicLib/Geodesic.hpp>
 #include <gtest/gtest.h>
 
+#include <GeographicLib/Geocentric.hpp>
+#include <GeographicLib/Geodesic.hpp>
 #include <cmath>
 
 #include "irmosaic/frame_geometry.h"
@@ -77,9 +77,9 @@ TEST(GeometryTest, HomographyThroughCrsMatchesDirectRayWithin5cm) {
         const Pose pose = MakePose(frame, east, north, 420.0 + 800.0, yaw, off_nadir, 0.0);
         const FrameGeometry geometry = ComputeFrameGeometry(camera, pose, frame, grid, ground);
         ASSERT_TRUE(geometry.ok) << geometry.problem;
-        for (const Eigen::Vector2d& px : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 0),
-                                         Eigen::Vector2d(319.5, 255.5), Eigen::Vector2d(17, 499),
-                                         Eigen::Vector2d(639, 511), Eigen::Vector2d(401, 77)}) {
+        for (const Eigen::Vector2d& px :
+             {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 0), Eigen::Vector2d(319.5, 255.5),
+              Eigen::Vector2d(17, 499), Eigen::Vector2d(639, 511), Eigen::Vector2d(401, 77)}) {
           const Eigen::Vector2d mosaic = ApplyHomography(geometry.mosaic_from_image, px);
           const Eigen::Vector2d ll = to_geographic.LatLonFromPlane(grid.PlaneFromPixel(mosaic));
           const Eigen::Vector2d ref = ReferenceGroundLatLon(camera, pose, px, 420.0);

@@ -1,4 +1,6 @@
 // POS log parsing, validation and interpolation.
+#include "irmosaic/pos.h"
+
 #include <gtest/gtest.h>
 
 #include <cstdio>
@@ -7,7 +9,6 @@
 
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
-#include "irmosaic/pos.h"
 
 namespace irmosaic {
 namespace {
@@ -49,13 +50,15 @@ TEST(PosTest, BadInputNamesFileLineAndField) {
        "lat_deg"},
       {"inf.csv", std::string(kHeader) + "0,47,8,inf,0,0,0\n", ":2:4", "height_m"},
       {"lat_range.csv", std::string(kHeader) + "0,91.5,8,500,0,0,0\n", ":2:2", "out of range"},
-      {"time_back.csv", std::string(kHeader) + "0,47,8,500,0,0,0\n2,47,8,500,0,0,0\n"
-                                               "1,47,8,500,0,0,0\n", ":4", "goes back"},
+      {"time_back.csv",
+       std::string(kHeader) + "0,47,8,500,0,0,0\n2,47,8,500,0,0,0\n"
+                              "1,47,8,500,0,0,0\n",
+       ":4", "goes back"},
       {"time_dup.csv", std::string(kHeader) + "0,47,8,500,0,0,0\n0,47,8,500,0,0,0\n", ":3",
        "repeats"},
       {"columns.csv", std::string(kHeader) + "0,47,8,500,0,0\n", ":2", "6 fields"},
-      {"unknown.csv", "time_s,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,yaw_deg,speed\n",
-       ":1:8", "unknown column 'speed'"},
+      {"unknown.csv", "time_s,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,yaw_deg,speed\n", ":1:8",
+       "unknown column 'speed'"},
       {"missing.csv", "time_s,lat_deg,lon_deg,height_m,roll_deg,pitch_deg\n", "yaw_deg",
        "lacks the required column"},
       {"text.csv", std::string(kHeader) + "0,47,8,500,0,abc,0\n", ":2:6", "not a number"},
@@ -84,8 +87,8 @@ TEST(PosTest, InterpolatesPositionInEnuAndAttitudeBySlerp) {
   const LocalFrame frame(47.0, 8.0);
   const Eigen::Vector3d a = frame.EnuFromGeodetic(47.0, 8.0, 500);
   const Eigen::Vector3d b = frame.EnuFromGeodetic(47.001, 8.0, 520);
-  const Eigen::Vector3d m = frame.EnuFromGeodetic(mid.pose.lat_deg, mid.pose.lon_deg,
-                                                  mid.pose.height_m);
+  const Eigen::Vector3d m =
+      frame.EnuFromGeodetic(mid.pose.lat_deg, mid.pose.lon_deg, mid.pose.height_m);
   EXPECT_LT((m - 0.5 * (a + b)).norm(), 0.01);  // Midpoint within 1 cm.
   // Yaw 15 deg, gimbal roll 0 at the midpoint (slerp of a pure-axis rotation).
   const Eigen::Quaterniond yaw15 = RotationFromYpr(15.0, 0, 0);

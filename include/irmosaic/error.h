@@ -15,10 +15,10 @@ class IRMOSAIC_EXPORT Error : public std::runtime_error {
 
 // Where in an input a problem sits. Empty or zero members are left out of messages.
 struct SourceLocation {
-  std::string input;   // File path, or a name such as "frame 17" for pushed data.
-  int line = 0;        // 1-based line number in a text input (0: not applicable).
-  int column = 0;      // 1-based column number (0: not applicable).
-  std::string field;   // Column or field name (empty: not applicable).
+  std::string input;  // File path, or a name such as "frame 17" for pushed data.
+  int line = 0;       // 1-based line number in a text input (0: not applicable).
+  int column = 0;     // 1-based column number (0: not applicable).
+  std::string field;  // Column or field name (empty: not applicable).
 
   // "pos.csv:12:3 (column 'lat')" style rendering.
   std::string ToString() const;

@@ -35,7 +35,7 @@ struct RayHit {
   enum class Status { kOk, kAboveHorizon, kBeyondRange, kCameraBelowGround };
   Status status = Status::kOk;
   Eigen::Vector3d geodetic = Eigen::Vector3d::Zero();  // lat_deg, lon_deg, height_m
-  double range_m = 0.0;                                 // Camera to ground along the ray.
+  double range_m = 0.0;                                // Camera to ground along the ray.
 
   bool ok() const { return status == Status::kOk; }
 };
@@ -73,8 +73,7 @@ struct FrameGeometry {
 // Correction homography of a frame: rays of a grid of pixels meet the ground exactly; the
 // homography is the least-squares fit (normalized DLT) of image to mosaic pixels.
 IRMOSAIC_EXPORT FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
-                                                   const LocalFrame& frame,
-                                                   const MosaicGrid& grid,
+                                                   const LocalFrame& frame, const MosaicGrid& grid,
                                                    const GroundModel& ground,
                                                    const GeometryOptions& options = {});
 

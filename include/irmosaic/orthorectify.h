@@ -11,9 +11,9 @@ namespace irmosaic {
 
 // A frame warped onto the mosaic plane, cropped to its footprint's bounding box.
 struct OrthoImage {
-  cv::Mat image;              // Same type as the input frame.
-  cv::Mat mask;               // CV_8U: 255 where the frame has data, 0 elsewhere.
-  cv::Point origin_px;        // Mosaic pixel (col, row) of image(0, 0).
+  cv::Mat image;        // Same type as the input frame.
+  cv::Mat mask;         // CV_8U: 255 where the frame has data, 0 elsewhere.
+  cv::Point origin_px;  // Mosaic pixel (col, row) of image(0, 0).
   Eigen::Matrix3d ortho_from_image = Eigen::Matrix3d::Identity();  // Undistorted px -> image px.
 
   bool empty() const { return image.empty(); }

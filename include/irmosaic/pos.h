@@ -18,7 +18,7 @@ struct PosRecord {
   double height_m = 0.0;  // Ellipsoidal height.
   double roll_deg = 0.0;
   double pitch_deg = 0.0;
-  double yaw_deg = 0.0;  // Heading, clockwise from true north.
+  double yaw_deg = 0.0;           // Heading, clockwise from true north.
   double gimbal_roll_deg = 0.0;   // Sweep angle: rotation of the mount about the body x axis.
   double gimbal_pitch_deg = 0.0;  // Tilt of the mount about its y axis.
   double gimbal_yaw_deg = 0.0;    // Pan of the mount about its z axis.

@@ -1,0 +1,145 @@
+// Orthorectification: a frame warped onto the mosaic plane with its validity mask.
+#include "irmosaic/orthorectify.h"
+
+#include <gtest/gtest.h>
+
+#include <opencv2/imgproc.hpp>
+
+#include "irmosaic/error.h"
+#include "irmosaic/frame_geometry.h"
+
+namespace irmosaic {
+namespace {
+
+// A smooth 16-bit test pattern: bilinear resampling reproduces it to well under 1 DN.
+cv::Mat SmoothPattern(int width, int height) {
+  cv::Mat image(height, width, CV_16U);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x)
+      image.at<uint16_t>(y, x) =
+          static_cast<uint16_t>(20000 + 8000 * std::sin(x * 0.05) * std::cos(y * 0.037) + 10.0 * x);
+  return image;
+}
+
+// Bilinear sample of a one-channel image at a sub-pixel position.
+double Bilinear(const cv::Mat& image, double x, double y) {
+  cv::Mat f;
+  image.convertTo(f, CV_32F);
+  cv::Mat sample;
+  cv::getRectSubPix(f, {1, 1}, cv::Point2f(static_cast<float>(x), static_cast<float>(y)), sample);
+  return sample.at<float>(0);
+}
+
+Eigen::Matrix3d ObliqueHomography(const CameraModel& camera) {
+  PosRecord r;
+  r.lat_deg = 47.2;
+  r.lon_deg = 8.5;
+  r.height_m = 1000.0;
+  r.yaw_deg = 33.0;
+  r.gimbal_roll_deg = -35.0;
+  const FrameGeometry g = ComputeFrameGeometry(camera, PoseFromRecord(r), LocalFrame(47.2, 8.5),
+                                               MosaicGrid{0.5}, FlatGround(0.0));
+  EXPECT_TRUE(g.ok) << g.problem;
+  return g.mosaic_from_image;
+}
+
+// A linear ramp (bilinear interpolation is exact on it), so a value error converts to a
+// position error: error_px = error_dn / |gradient|.
+cv::Mat Ramp(int width, int height, double gx, double gy) {
+  cv::Mat image(height, width, CV_16U);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x)
+      image.at<uint16_t>(y, x) = static_cast<uint16_t>(std::lround(1000 + gx * x + gy * y));
+  return image;
+}
+
+TEST(OrthorectifyTest, PixelsLandWhereTheHomographySaysWithin0p05px) {
+  const CameraModel camera = DefaultInfraredCamera();
+  const double gx = 40.0, gy = 27.0;
+  const cv::Mat frame = Ramp(camera.width, camera.height, gx, gy);
+  const Eigen::Matrix3d h = ObliqueHomography(camera);
+  const OrthoImage ortho = Orthorectify(frame, camera, h);
+  ASSERT_FALSE(ortho.empty());
+  EXPECT_EQ(ortho.image.type(), CV_16U);
+  double worst_dn = 0.0;
+  int checked = 0;
+  for (int y = 20; y < camera.height - 20; y += 37) {
+    for (int x = 20; x < camera.width - 20; x += 41) {
+      // Integer ortho pixel near the frame pixel's image; compare with the frame sampled back.
+      const Eigen::Vector2d o = ApplyHomography(ortho.ortho_from_image, {x, y});
+      const cv::Point op(static_cast<int>(std::lround(o.x())),
+                         static_cast<int>(std::lround(o.y())));
+      ASSERT_EQ(ortho.mask.at<uint8_t>(op), 255);
+      const Eigen::Vector2d back = ApplyHomography(ortho.ortho_from_image.inverse(), {op.x, op.y});
+      worst_dn = std::max(
+          worst_dn, std::abs(Bilinear(frame, back.x(), back.y()) - ortho.image.at<uint16_t>(op)));
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 100);
+  // Position error in frame pixels (OpenCV warps at 1/32 px; 16-bit rounding adds 0.5 DN).
+  EXPECT_LT(worst_dn / std::hypot(gx, gy), 0.05) << worst_dn << " DN";
+}
+
+TEST(OrthorectifyTest, MaskCoversExactlyTheFootprint) {
+  const CameraModel camera = DefaultInfraredCamera();
+  const cv::Mat frame(camera.height, camera.width, CV_8U, cv::Scalar(128));
+  const Eigen::Matrix3d h = ObliqueHomography(camera);
+  const OrthoImage ortho = Orthorectify(frame, camera, h);
+  // Area of the footprint quadrilateral (in ortho pixels) vs. the mask's pixel count.
+  std::vector<cv::Point2f> corners;
+  for (const Eigen::Vector2d& c : {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(639.5, -0.5),
+                                   Eigen::Vector2d(639.5, 511.5), Eigen::Vector2d(-0.5, 511.5)}) {
+    const Eigen::Vector2d o = ApplyHomography(ortho.ortho_from_image, c);
+    corners.emplace_back(static_cast<float>(o.x()), static_cast<float>(o.y()));
+  }
+  const double area = cv::contourArea(corners);
+  const double count = cv::countNonZero(ortho.mask);
+  double perimeter = cv::arcLength(corners, true);
+  EXPECT_NEAR(count, area, perimeter);  // Within one pixel along the border.
+  // Inside the mask, the constant frame stays constant; outside, nothing claims data.
+  cv::Mat values;
+  ortho.image.copyTo(values, ortho.mask);
+  double lo = 0, hi = 0;
+  cv::minMaxLoc(ortho.image, &lo, &hi, nullptr, nullptr, ortho.mask);
+  EXPECT_EQ(lo, 128);
+  EXPECT_EQ(hi, 128);
+}
+
+TEST(OrthorectifyTest, DistortionIsUndoneInTheSameResampling) {
+  CameraModel camera = DefaultInfraredCamera();
+  camera.distortion = {-0.2, 0.05, 0.0, 0.0, 0.0};
+  const cv::Mat frame = SmoothPattern(camera.width, camera.height);
+  const Eigen::Matrix3d h = ObliqueHomography(camera);
+  const OrthoImage ortho = Orthorectify(frame, camera, h);
+  double worst_dn = 0.0;
+  for (int y = 30; y < camera.height - 30; y += 53) {
+    for (int x = 30; x < camera.width - 30; x += 59) {
+      // Recorded pixel -> undistorted -> ortho: the ortho value equals the recorded value.
+      const Eigen::Vector2d u = camera.Undistort({x, y});
+      const Eigen::Vector2d o = ApplyHomography(ortho.ortho_from_image, u);
+      worst_dn = std::max(worst_dn,
+                          std::abs(Bilinear(ortho.image, o.x(), o.y()) - frame.at<uint16_t>(y, x)));
+    }
+  }
+  EXPECT_LT(worst_dn, 8.0);  // Two bilinear resamplings of a pattern of <= 400 DN/px.
+}
+
+TEST(OrthorectifyTest, BadFramesAreRefused) {
+  const CameraModel camera = DefaultInfraredCamera();
+  const Eigen::Matrix3d h = ObliqueHomography(camera);
+  EXPECT_THROW(Orthorectify(cv::Mat(), camera, h), InputError);
+  EXPECT_THROW(Orthorectify(cv::Mat(512, 640, CV_8UC3), camera, h), InputError);
+  Eigen::Matrix3d nan_h = h;
+  nan_h(0, 0) = std::nan("");
+  EXPECT_THROW(Orthorectify(cv::Mat(512, 640, CV_8U), camera, nan_h), InputError);
+  // An absurdly fine grid: the orthoimage would be enormous.
+  Eigen::Matrix3d zoom = Eigen::Matrix3d::Identity();
+  zoom(0, 0) = zoom(1, 1) = 50.0;
+  EXPECT_THROW(Orthorectify(cv::Mat(512, 640, CV_8U), camera, zoom * h,
+                            OrthoOptions{cv::INTER_LINEAR, 8192}),
+               InputError);
+}
+
+}  // namespace
+}  // namespace irmosaic
