@@ -1,5 +1,6 @@
 #include "irmosaic/frame_geometry.h"
 
+#include <Eigen/Cholesky>
 #include <Eigen/SVD>
 #include <GeographicLib/Geocentric.hpp>
 #include <cmath>
@@ -187,6 +188,63 @@ FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
   }
   result.ok = true;
   return result;
+}
+
+Eigen::Matrix<double, 10, 10> PosPriorSqrtInformation(
+    const CameraModel& camera, const Pose& pose, const LocalFrame& frame, const MosaicGrid& grid,
+    const GroundModel& ground, double position_sigma_m, double attitude_sigma_deg,
+    double model_sigma_px) {
+  GeometryOptions options;
+  options.fit_grid = 3;  // The five points only need the ray grid's corners and centre.
+  const std::array<Eigen::Vector2d, 5> points = {
+      Eigen::Vector2d(0, 0), Eigen::Vector2d(camera.width - 1, 0),
+      Eigen::Vector2d(camera.width - 1, camera.height - 1), Eigen::Vector2d(0, camera.height - 1),
+      Eigen::Vector2d((camera.width - 1) / 2.0, (camera.height - 1) / 2.0)};
+  auto place = [&](const Pose& p, Eigen::Matrix<double, 10, 1>* out) {
+    const FrameGeometry g = ComputeFrameGeometry(camera, p, frame, grid, ground, options);
+    if (!g.ok) return false;
+    for (int k = 0; k < 5; ++k)
+      out->segment<2>(2 * k) = ApplyHomography(g.mosaic_from_image, points[k]);
+    return true;
+  };
+  Eigen::Matrix<double, 10, 6> jacobian = Eigen::Matrix<double, 10, 6>::Zero();
+  const double step_m = 0.5, step_deg = 0.05;
+  for (int axis = 0; axis < 6; ++axis) {
+    Eigen::Matrix<double, 10, 1> plus, minus;
+    Pose a = pose, b = pose;
+    const double step = axis < 3 ? step_m : step_deg;
+    if (axis < 3) {
+      Eigen::Vector3d delta = Eigen::Vector3d::Zero();
+      delta[axis] = step;
+      // Move in the local ENU frame of the pose itself.
+      const LocalFrame here(pose.lat_deg, pose.lon_deg);
+      const Eigen::Vector3d enu = here.EnuFromGeodetic(pose.lat_deg, pose.lon_deg, pose.height_m);
+      const Eigen::Vector3d ga = here.GeodeticFromEnu(enu + delta);
+      const Eigen::Vector3d gb = here.GeodeticFromEnu(enu - delta);
+      a.lat_deg = ga.x(), a.lon_deg = ga.y(), a.height_m = ga.z();
+      b.lat_deg = gb.x(), b.lon_deg = gb.y(), b.height_m = gb.z();
+    } else {
+      // Small rotations of the body about its own x (roll), y (pitch), z (yaw) axes.
+      const double rad = step * M_PI / 180.0;
+      const Eigen::Vector3d axis_vec =
+          axis == 3 ? Eigen::Vector3d::UnitX()
+                    : (axis == 4 ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ());
+      a.ned_from_body = pose.ned_from_body * Eigen::AngleAxisd(rad, axis_vec);
+      b.ned_from_body = pose.ned_from_body * Eigen::AngleAxisd(-rad, axis_vec);
+    }
+    if (!place(a, &plus) || !place(b, &minus)) continue;
+    jacobian.col(axis) = (plus - minus) / (2.0 * step);
+  }
+  Eigen::Matrix<double, 6, 1> variances;
+  variances << Eigen::Vector3d::Constant(position_sigma_m * position_sigma_m),
+      Eigen::Vector3d::Constant(attitude_sigma_deg * attitude_sigma_deg);
+  Eigen::Matrix<double, 10, 10> covariance =
+      jacobian * variances.asDiagonal() * jacobian.transpose();
+  covariance.diagonal().array() += model_sigma_px * model_sigma_px;
+  // L with L^T L = covariance^-1: the inverse of the Cholesky factor.
+  const Eigen::LLT<Eigen::Matrix<double, 10, 10>> llt(covariance);
+  const Eigen::Matrix<double, 10, 10> lower = llt.matrixL();
+  return lower.triangularView<Eigen::Lower>().solve(Eigen::Matrix<double, 10, 10>::Identity());
 }
 
 }  // namespace irmosaic

@@ -77,6 +77,16 @@ IRMOSAIC_EXPORT FrameGeometry ComputeFrameGeometry(const CameraModel& camera, co
                                                    const GroundModel& ground,
                                                    const GeometryOptions& options = {});
 
+// How POS errors move a frame on the mosaic: the square-root information matrix L (10x10) of
+// the frame's four corners and centre (mosaic px, order TL, TR, BR, BL, centre; x then y),
+// from the Jacobian J of those points with respect to position (east, north, up) and attitude
+// (roll, pitch, yaw) by central differences: covariance J S J^T + model_sigma_px^2 I, with S the
+// diagonal POS variances. A prior residual L * (points - POS points) is then whitened.
+IRMOSAIC_EXPORT Eigen::Matrix<double, 10, 10> PosPriorSqrtInformation(
+    const CameraModel& camera, const Pose& pose, const LocalFrame& frame, const MosaicGrid& grid,
+    const GroundModel& ground, double position_sigma_m, double attitude_sigma_deg,
+    double model_sigma_px);
+
 // Normalized DLT homography from >= 4 correspondences (least squares for more).
 IRMOSAIC_EXPORT Eigen::Matrix3d FitHomography(const std::vector<Eigen::Vector2d>& from,
                                               const std::vector<Eigen::Vector2d>& to);

@@ -1,0 +1,138 @@
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "irmosaic/camera.h"
+#include "irmosaic/export.h"
+#include "irmosaic/orthorectify.h"
+
+namespace irmosaic {
+
+// Where one frame sits on the mosaic, as published (the latest estimate).
+struct FramePlacement {
+  int64_t index = -1;
+  double time_s = 0.0;
+  Eigen::Matrix3d mosaic_from_image = Eigen::Matrix3d::Identity();  // Undistorted px -> mosaic px.
+  Eigen::Matrix3d pos_mosaic_from_image = Eigen::Matrix3d::Identity();  // From POS alone.
+  bool pos_only = true;             // No registration succeeded: placed from POS (flagged).
+  std::vector<int64_t> neighbours;  // Frames it registered to.
+  int inliers = 0;                  // Tie points with its neighbours (inliers).
+  double residual_px = 0.0;         // RMS tie residual on the mosaic after the last solve.
+  double gain = 1.0;                // Radiometric compensation: value' = gain * value + offset.
+  double offset = 0.0;
+  int optimized_times = 0;  // How many window solves refined it.
+  std::string note;         // Why pos_only, or other warnings.
+};
+
+// One registered pair, in undistorted image pixels of both frames.
+struct PairMatch {
+  bool ok = false;
+  std::string reason;
+  Eigen::Matrix3d base_from_template = Eigen::Matrix3d::Identity();  // Image px -> image px.
+  std::vector<Eigen::Vector2d> base_points;      // Inlier tie points in the base frame.
+  std::vector<Eigen::Vector2d> template_points;  // The same points in the template frame.
+  double residual_rms_px = 0.0;
+};
+
+// A frame as the fusion holds it while it can still be a neighbour or be re-rendered.
+struct FusionFrame {
+  int64_t index = -1;
+  double time_s = 0.0;
+  cv::Mat image;  // As recorded (CV_8U, CV_16U or CV_32F).
+  Eigen::Matrix3d pos_mosaic_from_image = Eigen::Matrix3d::Identity();
+  OrthoImage pos_ortho;  // The frame orthorectified by its POS homography.
+  // Square-root information of the POS placement of the corners and centre (see
+  // PosPriorSqrtInformation); zero: isotropic FusionOptions::pos_sigma_px.
+  Eigen::Matrix<double, 10, 10> prior_sqrt_information = Eigen::Matrix<double, 10, 10>::Zero();
+};
+
+// Registers template against base (both orthorectified by POS). The fusion supplies the
+// predicted offset and search radius implicitly through the orthoimages' origins.
+using PairRegisterFn = std::function<PairMatch(const FusionFrame& base, const FusionFrame& templ)>;
+
+// Receives the mosaic as it forms. Called from the foreground and from the optimizer's
+// re-rendering; implementations must be thread-safe.
+class IRMOSAIC_EXPORT MosaicSink {
+ public:
+  virtual ~MosaicSink() = default;
+  // Blends `image` (the frame's pixel type, gain applied) with weight CV_32F in [0, 1] at
+  // mosaic pixel `origin_px`: out = w * image + (1 - w) * existing.
+  virtual void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) = 0;
+  // A frame was placed or moved.
+  virtual void FramePlaced(const FramePlacement& placement) = 0;
+};
+
+struct FusionOptions {
+  int window_frames = 300;              // Sliding window of the global optimization.
+  int solve_every_frames = 8;           // A window solve starts after this many new frames.
+  int max_neighbours = 3;               // Registrations per new frame.
+  int max_ties_per_pair = 24;           // Tie points kept per pair for the optimizer.
+  double min_overlap_fraction = 0.08;   // Of the smaller footprint, to try a pair.
+  double pos_sigma_px = 6.0;            // POS placement accuracy (1 sigma, px) for frames that
+                                        // bring no prior_sqrt_information.
+  double tie_sigma_px = 0.3;            // Tie point accuracy (1 sigma, px).
+  double robust_scale = 3.0;            // Cauchy loss scale, in sigmas of the tie residual.
+  double rerender_threshold_px = 0.25;  // Re-render a frame that moved more than this.
+  bool optimize = true;                 // Run the global optimization thread.
+  bool compensate_gain = true;          // Per-frame gain and offset from the overlaps.
+  double gain_prior_sigma = 0.5;        // Keeps the global level: gain ~ 1 +- this.
+  int feather_px = 24;                  // Seam blending ramp width.
+  int tie_patch_radius_px = 3;          // Radiometric samples: mean of a (2r+1)^2 patch.
+  bool render = true;                   // Paint into the sink (off for geometry-only runs).
+
+  // Returns false and a message when an option is out of range.
+  bool IsValid(std::string* error) const;
+};
+
+// Figures a user can print.
+struct FusionStats {
+  int64_t frames = 0;
+  int64_t frames_registered = 0;
+  int64_t frames_pos_only = 0;
+  int64_t pairs_tried = 0;
+  int64_t pairs_ok = 0;
+  int64_t solves = 0;
+  int64_t rerendered_frames = 0;
+  double last_solve_ms = 0.0;
+  double max_solve_ms = 0.0;
+  double total_solve_ms = 0.0;
+  int64_t optimizer_lag_frames = 0;  // Frames pushed but not yet in a finished solve.
+};
+
+// Map fusion (paper section 5): a real-time mapping step in the caller's thread and a global
+// optimization thread over a sliding window (Ceres), with radiometric compensation and
+// feathered seams. Push() never waits for the optimizer.
+//
+// Thread-safety: Push() and Finish() from one thread; Placements() and stats() from any.
+class IRMOSAIC_EXPORT MapFusion {
+ public:
+  // Does NOT take ownership of `sink`, which must outlive this object (may be null).
+  MapFusion(FusionOptions options, CameraModel camera, PairRegisterFn registrar, MosaicSink* sink);
+  ~MapFusion();
+  MapFusion(const MapFusion&) = delete;
+  MapFusion& operator=(const MapFusion&) = delete;
+
+  // Places a frame now: registers it to its neighbours, maps it through the best neighbour's
+  // latest homography (or POS when none registered) and renders it. Returns its placement.
+  FramePlacement Push(FusionFrame frame);
+
+  // Runs a last solve over the window, re-renders what moved and stops the thread.
+  void Finish();
+
+  // Latest placement of every frame pushed so far.
+  std::vector<FramePlacement> Placements() const;
+  FusionStats stats() const;
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace irmosaic

@@ -1,0 +1,675 @@
+#include "irmosaic/map_fusion.h"
+
+#include <ceres/ceres.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <mutex>
+#include <opencv2/imgproc.hpp>
+#include <set>
+#include <thread>
+
+#include "irmosaic/frame_geometry.h"
+
+namespace irmosaic {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// Image-point normalization for the homography update: n = (p - c) / s.
+struct Normalizer {
+  double cx = 0.0, cy = 0.0, s = 1.0;
+};
+
+// Maps image point p through H_ref * S^-1 * (I + D(delta)) * S (delta: 8 parameters).
+template <typename T>
+void MapPoint(const Eigen::Matrix3d& h_ref, const Normalizer& n, const T* delta,
+              const Eigen::Vector2d& p, T* out) {
+  const T nx = T((p.x() - n.cx) / n.s), ny = T((p.y() - n.cy) / n.s);
+  const T mx = (T(1) + delta[0]) * nx + delta[1] * ny + delta[2];
+  const T my = delta[3] * nx + (T(1) + delta[4]) * ny + delta[5];
+  const T mw = delta[6] * nx + delta[7] * ny + T(1);
+  // Back to pixel homogeneous coordinates, then through the reference homography.
+  const T ux = T(n.s) * mx + T(n.cx) * mw, uy = T(n.s) * my + T(n.cy) * mw, uw = mw;
+  const T qx = T(h_ref(0, 0)) * ux + T(h_ref(0, 1)) * uy + T(h_ref(0, 2)) * uw;
+  const T qy = T(h_ref(1, 0)) * ux + T(h_ref(1, 1)) * uy + T(h_ref(1, 2)) * uw;
+  const T qw = T(h_ref(2, 0)) * ux + T(h_ref(2, 1)) * uy + T(h_ref(2, 2)) * uw;
+  out[0] = qx / qw;
+  out[1] = qy / qw;
+}
+
+Eigen::Matrix3d ApplyDelta(const Eigen::Matrix3d& h_ref, const Normalizer& n, const double* d) {
+  Eigen::Matrix3d s, s_inv, update;
+  s << 1.0 / n.s, 0, -n.cx / n.s, 0, 1.0 / n.s, -n.cy / n.s, 0, 0, 1;
+  s_inv << n.s, 0, n.cx, 0, n.s, n.cy, 0, 0, 1;
+  update << 1 + d[0], d[1], d[2], d[3], 1 + d[4], d[5], d[6], d[7], 1;
+  Eigen::Matrix3d h = h_ref * s_inv * update * s;
+  return h / h(2, 2);
+}
+
+// A tie point: both frames' placements should put it at the same mosaic pixel.
+struct TieCost {
+  TieCost(const Eigen::Matrix3d& ha, const Eigen::Matrix3d& hb, const Normalizer& n,
+          const Eigen::Vector2d& pa, const Eigen::Vector2d& pb, double inv_sigma)
+      : ha_(ha), hb_(hb), n_(n), pa_(pa), pb_(pb), inv_sigma_(inv_sigma) {}
+  template <typename T>
+  bool operator()(const T* da, const T* db, T* residual) const {
+    T qa[2], qb[2];
+    MapPoint(ha_, n_, da, pa_, qa);
+    MapPoint(hb_, n_, db, pb_, qb);
+    residual[0] = (qa[0] - qb[0]) * T(inv_sigma_);
+    residual[1] = (qa[1] - qb[1]) * T(inv_sigma_);
+    return true;
+  }
+  Eigen::Matrix3d ha_, hb_;
+  Normalizer n_;
+  Eigen::Vector2d pa_, pb_;
+  double inv_sigma_;
+};
+
+// POS prior: the frame's corners and centre stay near where POS puts them, whitened by the
+// square-root information of the POS error (FusionFrame::prior_sqrt_information). POS errors
+// move a footprint mostly as a whole and barely change its shape; tie points in a narrow
+// overlap strip cannot fix a frame's shape, so an isotropic prior leaves the network floppy.
+struct PriorCost {
+  PriorCost(const Eigen::Matrix3d& h_ref, const Normalizer& n,
+            std::array<Eigen::Vector2d, 5> points, const Eigen::Matrix<double, 10, 1>& targets,
+            const Eigen::Matrix<double, 10, 10>& sqrt_info)
+      : h_ref_(h_ref), n_(n), points_(points), targets_(targets), sqrt_info_(sqrt_info) {}
+  template <typename T>
+  bool operator()(const T* d, T* residual) const {
+    T e[10];
+    for (int k = 0; k < 5; ++k) {
+      T q[2];
+      MapPoint(h_ref_, n_, d, points_[k], q);
+      e[2 * k] = q[0] - T(targets_(2 * k));
+      e[2 * k + 1] = q[1] - T(targets_(2 * k + 1));
+    }
+    for (int r = 0; r < 10; ++r) {
+      T sum = T(0);
+      for (int c = 0; c <= r; ++c) sum += T(sqrt_info_(r, c)) * e[c];  // Lower triangular.
+      residual[r] = sum;
+    }
+    return true;
+  }
+  Eigen::Matrix3d h_ref_;
+  Normalizer n_;
+  std::array<Eigen::Vector2d, 5> points_;  // Four corners, then the centre.
+  Eigen::Matrix<double, 10, 1> targets_;
+  Eigen::Matrix<double, 10, 10> sqrt_info_;
+};
+
+// Mean of a small patch around an undistorted point (for radiometric ties); NaN if outside.
+double PatchMean(const cv::Mat& image, const CameraModel& camera, const Eigen::Vector2d& p,
+                 int radius) {
+  const Eigen::Vector2d raw = camera.Distort(p);
+  const int x = static_cast<int>(std::lround(raw.x())), y = static_cast<int>(std::lround(raw.y()));
+  if (x - radius < 0 || y - radius < 0 || x + radius >= image.cols || y + radius >= image.rows) {
+    return std::numeric_limits<double>::quiet_NaN();
+  }
+  return cv::mean(image(cv::Rect(x - radius, y - radius, 2 * radius + 1, 2 * radius + 1)))[0];
+}
+
+std::vector<cv::Point2f> Footprint(const Eigen::Matrix3d& h, const CameraModel& camera) {
+  std::vector<cv::Point2f> quad;
+  for (const Eigen::Vector2d& c :
+       {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(camera.width - 0.5, -0.5),
+        Eigen::Vector2d(camera.width - 0.5, camera.height - 0.5),
+        Eigen::Vector2d(-0.5, camera.height - 0.5)}) {
+    const Eigen::Vector2d q = ApplyHomography(h, c);
+    quad.emplace_back(static_cast<float>(q.x()), static_cast<float>(q.y()));
+  }
+  return quad;
+}
+
+// Largest displacement of the image corners between two placements, mosaic pixels.
+double CornerShift(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b, const CameraModel& camera) {
+  const auto qa = Footprint(a, camera), qb = Footprint(b, camera);
+  double worst = 0.0;
+  for (int k = 0; k < 4; ++k) worst = std::max<double>(worst, cv::norm(qa[k] - qb[k]));
+  return worst;
+}
+
+}  // namespace
+
+bool FusionOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& text) {
+    if (error) *error = text;
+    return false;
+  };
+  if (window_frames < 2) return fail("window_frames must be at least 2");
+  if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
+  if (max_neighbours < 1) return fail("max_neighbours must be at least 1");
+  if (!(min_overlap_fraction > 0.0 && min_overlap_fraction < 1.0))
+    return fail("min_overlap_fraction must be in (0, 1)");
+  if (!(pos_sigma_px > 0.0)) return fail("pos_sigma_px must be positive");
+  if (!(tie_sigma_px > 0.0)) return fail("tie_sigma_px must be positive");
+  if (!(robust_scale > 0.0)) return fail("robust_scale must be positive");
+  if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
+  if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
+  if (feather_px < 1) return fail("feather_px must be at least 1");
+  return true;
+}
+
+class MapFusion::Impl {
+ public:
+  Impl(FusionOptions options, CameraModel camera, PairRegisterFn registrar, MosaicSink* sink)
+      : options_(options),
+        camera_(std::move(camera)),
+        registrar_(std::move(registrar)),
+        sink_(sink),
+        foreground_ortho_(camera_),
+        background_ortho_(camera_) {
+    std::string error;
+    if (!options_.IsValid(&error)) throw std::invalid_argument("FusionOptions: " + error);
+    normalizer_ = {(camera_.width - 1) / 2.0, (camera_.height - 1) / 2.0,
+                   std::max(camera_.width, camera_.height) / 2.0};
+    if (options_.optimize) optimizer_ = std::thread([this] { OptimizerLoop(); });
+  }
+
+  ~Impl() { StopThread(); }
+
+  FramePlacement Push(FusionFrame input) {
+    auto frame = std::make_shared<Held>();
+    frame->data = std::move(input);
+    frame->pos_footprint = Footprint(frame->data.pos_mosaic_from_image, camera_);
+    frame->prior_sqrt_information =
+        frame->data.prior_sqrt_information.isZero()
+            ? Eigen::Matrix<double, 10, 10>(Eigen::Matrix<double, 10, 10>::Identity() /
+                                            options_.pos_sigma_px)
+            : frame->data.prior_sqrt_information;
+    FramePlacement placement;
+    placement.index = frame->data.index;
+    placement.time_s = frame->data.time_s;
+    placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
+    placement.mosaic_from_image = frame->data.pos_mosaic_from_image;
+
+    // Neighbours by POS footprint overlap, the most recent frame first.
+    std::vector<std::shared_ptr<Held>> candidates;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      candidates.assign(window_.rbegin(), window_.rend());
+    }
+    std::vector<std::pair<double, std::shared_ptr<Held>>> scored;
+    const double own_area = cv::contourArea(frame->pos_footprint);
+    for (size_t k = 0; k < candidates.size(); ++k) {
+      std::vector<cv::Point2f> overlap;
+      const float area = cv::intersectConvexConvex(candidates[k]->pos_footprint,
+                                                   frame->pos_footprint, overlap, true);
+      const double fraction =
+          area / std::min(own_area, cv::contourArea(candidates[k]->pos_footprint));
+      if (fraction >= options_.min_overlap_fraction) {
+        // The previous frame of the sweep goes first whatever its overlap.
+        scored.emplace_back(k == 0 ? 2.0 : fraction, candidates[k]);
+      }
+    }
+    std::stable_sort(scored.begin(), scored.end(),
+                     [](const auto& a, const auto& b) { return a.first > b.first; });
+    if (static_cast<int>(scored.size()) > options_.max_neighbours) {
+      scored.resize(options_.max_neighbours);
+    }
+
+    // Register, and collect template points with their mosaic positions through each
+    // neighbour's latest placement.
+    std::vector<Eigen::Vector2d> template_pts, mosaic_pts;
+    std::vector<std::pair<double, double>> radiometric;  // (value in new frame, target value).
+    std::vector<Pair> new_pairs;
+    for (const auto& [score, neighbour] : scored) {
+      PairMatch match = registrar_(neighbour->data, frame->data);
+      ++pairs_tried_;
+      if (!match.ok) {
+        placement.note += "pair with " + std::to_string(neighbour->data.index) +
+                          " failed: " + match.reason + "; ";
+        continue;
+      }
+      ++pairs_ok_;
+      SubsampleTies(&match);
+      Pair pair;
+      pair.base = neighbour;
+      pair.templ = frame;
+      pair.base_points = match.base_points;
+      pair.template_points = match.template_points;
+      Eigen::Matrix3d h_base;
+      double gain_base = 1.0, offset_base = 0.0;
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        h_base = placements_[neighbour->slot].mosaic_from_image;
+        gain_base = placements_[neighbour->slot].gain;
+        offset_base = placements_[neighbour->slot].offset;
+      }
+      for (size_t t = 0; t < pair.base_points.size(); ++t) {
+        template_pts.push_back(pair.template_points[t]);
+        mosaic_pts.push_back(ApplyHomography(h_base, pair.base_points[t]));
+        const double vb = PatchMean(neighbour->data.image, camera_, pair.base_points[t],
+                                    options_.tie_patch_radius_px);
+        const double vt = PatchMean(frame->data.image, camera_, pair.template_points[t],
+                                    options_.tie_patch_radius_px);
+        pair.base_values.push_back(vb);
+        pair.template_values.push_back(vt);
+        if (std::isfinite(vb) && std::isfinite(vt)) {
+          radiometric.emplace_back(vt, gain_base * vb + offset_base);
+        }
+      }
+      placement.neighbours.push_back(neighbour->data.index);
+      placement.inliers += static_cast<int>(pair.base_points.size());
+      new_pairs.push_back(std::move(pair));
+    }
+    // Real-time mapping: the neighbours' latest homographies place the tie points on the
+    // mosaic (H_i * H(j->i)); the mean shift from the POS placement onto them corrects
+    // H_pos_j. Rotation or scale fitted on a 10-40 % overlap strip extrapolates across the
+    // frame with a gain above one, so chaining them diverges exponentially (measured in
+    // map_fusion_test); a translation cannot. POS keeps the shape; the optimizer refines it.
+    if (template_pts.size() >= 4) {
+      std::vector<Eigen::Vector2d> from;
+      for (const Eigen::Vector2d& t : template_pts) {
+        from.push_back(ApplyHomography(frame->data.pos_mosaic_from_image, t));
+      }
+      Eigen::Matrix3d correction = Eigen::Matrix3d::Identity();
+      for (size_t t = 0; t < from.size(); ++t) {
+        correction.block<2, 1>(0, 2) +=
+            (mosaic_pts[t] - from[t]) / static_cast<double>(from.size());
+      }
+      placement.mosaic_from_image = correction * frame->data.pos_mosaic_from_image;
+      placement.mosaic_from_image /= placement.mosaic_from_image(2, 2);
+      placement.pos_only = false;
+      double sum_sq = 0.0;
+      for (size_t t = 0; t < template_pts.size(); ++t) {
+        sum_sq += (ApplyHomography(placement.mosaic_from_image, template_pts[t]) - mosaic_pts[t])
+                      .squaredNorm();
+      }
+      placement.residual_px = std::sqrt(sum_sq / static_cast<double>(template_pts.size()));
+    } else if (scored.empty()) {
+      placement.note += "no overlapping neighbour; ";
+    }
+    if (options_.compensate_gain) FitGain(radiometric, &placement.gain, &placement.offset);
+
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      frame->slot = placements_.size();
+      placements_.push_back(placement);
+      window_.push_back(frame);
+      for (Pair& p : new_pairs) pairs_.push_back(std::move(p));
+      ++frames_since_solve_;
+      if (placement.pos_only) {
+        ++frames_pos_only_;
+      } else {
+        ++frames_registered_;
+      }
+      // Frames leaving the window are frozen; pairs with no frame in the window are dropped.
+      const size_t keep = 2 * static_cast<size_t>(options_.window_frames);
+      while (window_.size() > keep) window_.pop_front();
+      const int64_t oldest = window_.front()->data.index;
+      while (!pairs_.empty() && pairs_.front().base->data.index < oldest &&
+             pairs_.front().templ->data.index < oldest) {
+        pairs_.pop_front();
+      }
+    }
+    Render(*frame, placement, &foreground_ortho_);
+    if (sink_) sink_->FramePlaced(placement);
+    if (options_.optimize) cv_.notify_one();
+    return placement;
+  }
+
+  void Finish() {
+    StopThread();
+    if (options_.optimize) SolveWindow(true);
+  }
+
+  std::vector<FramePlacement> Placements() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return placements_;
+  }
+
+  FusionStats stats() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    FusionStats s = stats_;
+    s.frames = static_cast<int64_t>(placements_.size());
+    s.frames_registered = frames_registered_;
+    s.frames_pos_only = frames_pos_only_;
+    s.pairs_tried = pairs_tried_;
+    s.pairs_ok = pairs_ok_;
+    s.optimizer_lag_frames = frames_since_solve_;
+    return s;
+  }
+
+ private:
+  struct Held {
+    FusionFrame data;
+    Eigen::Matrix<double, 10, 10> prior_sqrt_information;
+    size_t slot = 0;
+    std::vector<cv::Point2f> pos_footprint;
+  };
+  struct Pair {
+    std::shared_ptr<Held> base, templ;
+    std::vector<Eigen::Vector2d> base_points, template_points;
+    std::vector<double> base_values, template_values;
+  };
+
+  // Keeps at most max_ties_per_pair tie points, evenly spread over the list (the registrar
+  // returns them spread over the overlap), so the optimizer's cost per pair is bounded.
+  void SubsampleTies(PairMatch* match) const {
+    const size_t n = match->base_points.size();
+    const size_t cap = static_cast<size_t>(options_.max_ties_per_pair);
+    if (n <= cap) return;
+    std::vector<Eigen::Vector2d> base, templ;
+    for (size_t k = 0; k < cap; ++k) {
+      const size_t i = k * n / cap;
+      base.push_back(match->base_points[i]);
+      templ.push_back(match->template_points[i]);
+    }
+    match->base_points = std::move(base);
+    match->template_points = std::move(templ);
+  }
+
+  // Least squares gain/offset mapping the new frame's values onto its neighbours' compensated
+  // values, with a weak prior towards (1, 0) so the level cannot wander.
+  void FitGain(const std::vector<std::pair<double, double>>& samples, double* gain,
+               double* offset) const {
+    *gain = 1.0;
+    *offset = 0.0;
+    if (samples.size() < 6) return;
+    double scale = 0.0;
+    for (const auto& s : samples) scale += std::abs(s.first);
+    scale = std::max(scale / static_cast<double>(samples.size()), 1e-6);
+    Eigen::Matrix2d ata = Eigen::Matrix2d::Zero();
+    Eigen::Vector2d atb = Eigen::Vector2d::Zero();
+    for (const auto& [v, target] : samples) {
+      const Eigen::Vector2d row(v / scale, 1.0);
+      ata += row * row.transpose();
+      atb += row * (target / scale);
+    }
+    const double w = 1.0 / (options_.gain_prior_sigma * options_.gain_prior_sigma);
+    ata(0, 0) += w;
+    atb(0) += w;     // gain ~ 1
+    ata(1, 1) += w;  // offset/scale ~ 0
+    const Eigen::Vector2d x = ata.ldlt().solve(atb);
+    if (x.allFinite() && x(0) > 0.2 && x(0) < 5.0) {
+      *gain = x(0);
+      *offset = x(1) * scale;
+    }
+  }
+
+  void Render(const Held& frame, const FramePlacement& placement, Orthorectifier* ortho) {
+    if (!sink_ || !options_.render) return;
+    OrthoImage out;
+    ortho->Run(frame.data.image, placement.mosaic_from_image, &out);
+    cv::Mat compensated;
+    out.image.convertTo(compensated, out.image.type(), placement.gain, placement.offset);
+    cv::Mat distance, weight;
+    cv::distanceTransform(out.mask, distance, cv::DIST_L2, cv::DIST_MASK_3, CV_32F);
+    distance.convertTo(weight, CV_32F, 1.0 / options_.feather_px);
+    cv::min(weight, 1.0, weight);
+    sink_->Paint(compensated, weight, out.origin_px);
+  }
+
+  void StopThread() {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      stop_ = true;
+    }
+    cv_.notify_all();
+    if (optimizer_.joinable()) optimizer_.join();
+  }
+
+  void OptimizerLoop() {
+    std::unique_lock<std::mutex> lock(mu_);
+    while (true) {
+      cv_.wait(lock,
+               [this] { return stop_ || frames_since_solve_ >= options_.solve_every_frames; });
+      if (stop_) return;
+      lock.unlock();
+      SolveWindow(false);
+      lock.lock();
+    }
+  }
+
+  // One window solve: homographies by Ceres, gains by linear least squares; publishes and
+  // re-renders what moved.
+  void SolveWindow(bool final_solve) {
+    const auto start = Clock::now();
+    std::vector<std::shared_ptr<Held>> frames;
+    std::vector<Pair> pairs;
+    std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
+    std::map<size_t, Eigen::Matrix<double, 10, 10>> prior_info;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      if (window_.size() < 2) return;
+      // The last window_frames frames, extended back (up to twice that) to frames no solve
+      // has refined yet, so a foreground running ahead never freezes unrefined frames.
+      size_t first = window_.size() > static_cast<size_t>(options_.window_frames)
+                         ? window_.size() - options_.window_frames
+                         : 0;
+      while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
+             window_.size() - first < 2 * static_cast<size_t>(options_.window_frames)) {
+        --first;
+      }
+      frames.assign(window_.begin() + static_cast<std::ptrdiff_t>(first), window_.end());
+      for (const Pair& p : pairs_) {
+        if (p.templ->slot >= frames.front()->slot) pairs.push_back(p);
+      }
+      for (const Pair& p : pairs) {
+        current[p.base->slot] = placements_[p.base->slot];
+        current[p.templ->slot] = placements_[p.templ->slot];
+      }
+      for (const auto& f : frames) {
+        current[f->slot] = placements_[f->slot];
+        prior_info[f->slot] = f->prior_sqrt_information;
+      }
+      frames_since_solve_ = 0;
+    }
+    const size_t first_slot = frames.front()->slot;
+    std::map<size_t, std::array<double, 8>> delta;
+    for (const auto& [slot, placement] : current) delta[slot].fill(0.0);
+
+    // Two stages: plain least squares from the real-time placements (which may be many
+    // sigmas off, where a robust loss would call every tie an outlier), then Cauchy to
+    // down-weight the ties of bad pairs. One wrapper lets the loss change between stages.
+    ceres::Problem::Options problem_options;
+    problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+    ceres::Problem problem(problem_options);
+    ceres::LossFunctionWrapper tie_loss(nullptr, ceres::TAKE_OWNERSHIP);
+    const double inv_tie = 1.0 / options_.tie_sigma_px;
+    for (const Pair& p : pairs) {
+      const size_t a = p.base->slot, b = p.templ->slot;
+      for (size_t t = 0; t < p.base_points.size(); ++t) {
+        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<TieCost, 2, 8, 8>(new TieCost(
+                                     current[a].mosaic_from_image, current[b].mosaic_from_image,
+                                     normalizer_, p.base_points[t], p.template_points[t], inv_tie)),
+                                 &tie_loss, delta[a].data(), delta[b].data());
+      }
+    }
+    const std::array<Eigen::Vector2d, 5> points = {
+        Eigen::Vector2d(0, 0), Eigen::Vector2d(camera_.width - 1, 0),
+        Eigen::Vector2d(camera_.width - 1, camera_.height - 1),
+        Eigen::Vector2d(0, camera_.height - 1),
+        Eigen::Vector2d((camera_.width - 1) / 2.0, (camera_.height - 1) / 2.0)};
+    for (auto& [slot, d] : delta) {
+      if (!problem.HasParameterBlock(d.data())) problem.AddParameterBlock(d.data(), 8);
+      if (slot < first_slot) {
+        problem.SetParameterBlockConstant(d.data());  // Left the window: frozen.
+        continue;
+      }
+      Eigen::Matrix<double, 10, 1> targets;
+      for (int k = 0; k < 5; ++k) {
+        targets.segment<2>(2 * k) = ApplyHomography(current[slot].pos_mosaic_from_image, points[k]);
+      }
+      problem.AddResidualBlock(
+          new ceres::AutoDiffCostFunction<PriorCost, 10, 8>(new PriorCost(
+              current[slot].mosaic_from_image, normalizer_, points, targets, prior_info.at(slot))),
+          nullptr, d.data());
+    }
+    ceres::Solver::Options solver;
+    solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+    solver.max_num_iterations = final_solve ? 20 : 6;
+    solver.num_threads = 1;
+    solver.logging_type = ceres::SILENT;
+    // The POS priors are weak next to the ties, so the mode they fix (where the whole window
+    // sits) moves the cost by a tiny fraction: Ceres' default tolerances would stop first.
+    solver.function_tolerance = 1e-14;
+    solver.gradient_tolerance = 1e-16;
+    solver.parameter_tolerance = 1e-12;
+    ceres::Solver::Summary summary;
+    ceres::Solve(solver, &problem, &summary);
+    tie_loss.Reset(new ceres::CauchyLoss(options_.robust_scale), ceres::TAKE_OWNERSHIP);
+    ceres::Solve(solver, &problem, &summary);
+
+    // Residuals per frame after the solve.
+    std::map<size_t, std::pair<double, int>> residual;  // slot -> (sum sq, count)
+    std::map<size_t, Eigen::Matrix3d> solved;
+    for (auto& [slot, d] : delta) {
+      solved[slot] = slot < first_slot
+                         ? current[slot].mosaic_from_image
+                         : ApplyDelta(current[slot].mosaic_from_image, normalizer_, d.data());
+    }
+    for (const Pair& p : pairs) {
+      for (size_t t = 0; t < p.base_points.size(); ++t) {
+        const double e = (ApplyHomography(solved[p.base->slot], p.base_points[t]) -
+                          ApplyHomography(solved[p.templ->slot], p.template_points[t]))
+                             .squaredNorm();
+        for (size_t s : {p.base->slot, p.templ->slot}) {
+          residual[s].first += e;
+          residual[s].second += 1;
+        }
+      }
+    }
+    std::map<size_t, std::pair<double, double>> gains;
+    if (options_.compensate_gain) gains = SolveGains(pairs, current, first_slot);
+
+    // Publish, then re-render frames that moved.
+    std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> moved;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      for (const auto& f : frames) {
+        FramePlacement& live = placements_[f->slot];
+        const Eigen::Matrix3d before = live.mosaic_from_image;
+        // Frames placed while we solved were chained from the old placement of their
+        // neighbour; carry the correction of the frame itself when it was in the snapshot.
+        live.mosaic_from_image = solved[f->slot];
+        live.optimized_times += 1;
+        if (residual[f->slot].second > 0) {
+          live.residual_px = std::sqrt(residual[f->slot].first / residual[f->slot].second);
+        }
+        const double old_gain = live.gain, old_offset = live.offset;
+        if (gains.count(f->slot)) std::tie(live.gain, live.offset) = gains[f->slot];
+        const double value_scale = std::max(1.0, std::abs(live.offset) + 1000.0);
+        const bool radiometry_moved = std::abs(live.gain - old_gain) > 0.01 ||
+                                      std::abs(live.offset - old_offset) > 0.01 * value_scale;
+        if (CornerShift(before, live.mosaic_from_image, camera_) > options_.rerender_threshold_px ||
+            radiometry_moved) {
+          moved.emplace_back(f, live);
+        }
+      }
+      const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+      stats_.solves += 1;
+      stats_.last_solve_ms = ms;
+      stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
+      stats_.total_solve_ms += ms;
+      stats_.rerendered_frames += static_cast<int64_t>(moved.size());
+    }
+    for (const auto& [frame, placement] : moved) {
+      Render(*frame, placement, final_solve ? &foreground_ortho_ : &background_ortho_);
+      if (sink_) sink_->FramePlaced(placement);
+    }
+  }
+
+  // Gains and offsets of the window's frames from the radiometric ties (linear least squares,
+  // frozen frames fixed, weak prior towards gain 1 and offset 0).
+  std::map<size_t, std::pair<double, double>> SolveGains(
+      const std::vector<Pair>& pairs, const std::map<size_t, FramePlacement>& current,
+      size_t first_slot) const {
+    std::map<size_t, int> unknown;  // slot -> column pair index
+    for (const auto& [slot, placement] : current) {
+      if (slot >= first_slot) {
+        const int next = static_cast<int>(unknown.size());
+        unknown[slot] = next;
+      }
+    }
+    double scale = 0.0;
+    int count = 0;
+    for (const Pair& p : pairs) {
+      for (double v : p.base_values) {
+        if (std::isfinite(v)) {
+          scale += std::abs(v);
+          ++count;
+        }
+      }
+    }
+    if (count < 6 || unknown.empty()) return {};
+    scale = std::max(scale / count, 1e-6);
+    const int n = static_cast<int>(unknown.size()) * 2;
+    Eigen::MatrixXd ata = Eigen::MatrixXd::Zero(n, n);
+    Eigen::VectorXd atb = Eigen::VectorXd::Zero(n);
+    for (const Pair& p : pairs) {
+      const size_t a = p.base->slot, b = p.templ->slot;
+      for (size_t t = 0; t < p.base_values.size(); ++t) {
+        const double va = p.base_values[t] / scale, vb = p.template_values[t] / scale;
+        if (!std::isfinite(va) || !std::isfinite(vb)) continue;
+        // Equation: gain_a va + off_a - gain_b vb - off_b = 0.
+        std::vector<std::pair<int, double>> row;
+        double rhs = 0.0;
+        for (const auto& [slot, v, sign] : {std::tuple{a, va, 1.0}, std::tuple{b, vb, -1.0}}) {
+          auto it = unknown.find(slot);
+          if (it != unknown.end()) {
+            row.emplace_back(2 * it->second, sign * v);
+            row.emplace_back(2 * it->second + 1, sign);
+          } else {
+            const FramePlacement& fixed = current.at(slot);
+            rhs -= sign * (fixed.gain * v + fixed.offset / scale);
+          }
+        }
+        for (const auto& [i, vi] : row) {
+          atb(i) += vi * rhs;
+          for (const auto& [j, vj] : row) ata(i, j) += vi * vj;
+        }
+      }
+    }
+    const double w = 1.0 / (options_.gain_prior_sigma * options_.gain_prior_sigma);
+    for (int k = 0; k < n / 2; ++k) {
+      ata(2 * k, 2 * k) += w;
+      atb(2 * k) += w;
+      ata(2 * k + 1, 2 * k + 1) += w;
+    }
+    const Eigen::VectorXd x = ata.ldlt().solve(atb);
+    std::map<size_t, std::pair<double, double>> result;
+    if (!x.allFinite()) return result;
+    for (const auto& [slot, k] : unknown) {
+      const double g = x(2 * k);
+      if (g > 0.2 && g < 5.0) result[slot] = {g, x(2 * k + 1) * scale};
+    }
+    return result;
+  }
+
+  FusionOptions options_;
+  CameraModel camera_;
+  PairRegisterFn registrar_;
+  MosaicSink* sink_;
+  Normalizer normalizer_;
+  Orthorectifier foreground_ortho_;
+  Orthorectifier background_ortho_;
+
+  mutable std::mutex mu_;
+  std::condition_variable cv_;
+  bool stop_ = false;
+  std::thread optimizer_;
+  std::deque<std::shared_ptr<Held>> window_;
+  std::deque<Pair> pairs_;
+  std::vector<FramePlacement> placements_;
+  int64_t frames_since_solve_ = 0;
+  int64_t frames_registered_ = 0, frames_pos_only_ = 0, pairs_tried_ = 0, pairs_ok_ = 0;
+  FusionStats stats_;
+};
+
+MapFusion::MapFusion(FusionOptions options, CameraModel camera, PairRegisterFn registrar,
+                     MosaicSink* sink)
+    : impl_(std::make_unique<Impl>(options, std::move(camera), std::move(registrar), sink)) {}
+MapFusion::~MapFusion() = default;
+FramePlacement MapFusion::Push(FusionFrame frame) { return impl_->Push(std::move(frame)); }
+void MapFusion::Finish() { impl_->Finish(); }
+std::vector<FramePlacement> MapFusion::Placements() const { return impl_->Placements(); }
+FusionStats MapFusion::stats() const { return impl_->stats(); }
+
+}  // namespace irmosaic
