@@ -45,9 +45,10 @@ struct Octave {
   int level = 1;
 };
 
-int LevelFor(double feature_px) {
+// Coarsest level grid that still samples a feature of this size `per_feature` times.
+int LevelFor(double feature_px, double per_feature) {
   for (int s : kLevels) {
-    if (s <= feature_px / 4.0) return s;
+    if (s <= feature_px / per_feature) return s;
   }
   return 1;
 }
@@ -65,7 +66,7 @@ std::vector<Octave> MakeOctaves(uint64_t seed, uint64_t band, double min_spacing
     o.offset = {0.5 * (HashUniform(SplitMix(o.salt + 2)) + 1.0),
                 0.5 * (HashUniform(SplitMix(o.salt + 3)) + 1.0)};
     o.amplitude = std::pow(spacing, exponent);
-    o.level = LevelFor(spacing);
+    o.level = LevelFor(spacing, 2.0);
     // Bilinear value noise of iid uniform[-1, 1] lattice values has mean variance (1/3)(4/9).
     sum_sq += o.amplitude * o.amplitude * (4.0 / 27.0);
     octaves.push_back(o);
@@ -143,6 +144,7 @@ struct SyntheticGround::Impl {
   MosaicGrid grid;
   int source_level = 8;
   std::vector<Octave> background, detail;
+  double pixel_texture_std = 0.0;
 
   mutable std::mutex mutex;
   mutable std::list<std::pair<TileKey, cv::Mat>> lru;
@@ -262,15 +264,18 @@ void SyntheticGround::Attach(const LocalFrame& frame, const MosaicGrid& grid) {
   Impl& g = *impl_;
   g.grid = grid;
   const uint64_t seed = g.options.seed;
-  // Background terrain: features 32 px to 4096 px; detail: 2 px to 16 px (docs/simulator.md).
+  // Background terrain: features 32 px to 4096 px; detail: 4 px to 16 px plus per-pixel
+  // texture at the finest scale (docs/simulator.md). A share 1/4 of the detail variance goes to
+  // the per-pixel texture.
   g.background = MakeOctaves(seed, 1, 32.0, 4096.0, 0.8, kBackgroundStd);
-  g.detail = MakeOctaves(seed, 2, 2.0, 16.0, 0.3, g.options.detail_contrast);
+  g.detail = MakeOctaves(seed, 2, 4.0, 16.0, 0.3, g.options.detail_contrast * std::sqrt(0.75));
+  g.pixel_texture_std = g.options.detail_contrast * 0.5;
   for (Octave& o : g.background) o.level = 8;
   if (g.source.empty()) return;
   const double ground_px_m =
       g.options.ground_m_per_source_px > 0 ? g.options.ground_m_per_source_px : g.source_px_m;
   g.plane_scale = g.source_px_m / ground_px_m;
-  g.source_level = LevelFor(ground_px_m / grid.gsd_m);
+  g.source_level = LevelFor(ground_px_m / grid.gsd_m, 4.0);
   if (g.earth_crs) {
     OGRSpatialReference plane_srs;
     plane_srs.importFromWkt(frame.CrsWkt().c_str());
@@ -302,20 +307,25 @@ Eigen::Vector2d SyntheticGround::Impl::SourcePixelFromMosaic(double col, double 
 }
 
 cv::Mat SyntheticGround::Impl::Generate(int64_t tile_col, int64_t tile_row) const {
-  const double c0 = static_cast<double>(tile_col * kTile);
-  const double r0 = static_cast<double>(tile_row * kTile);
+  const int64_t c0 = tile_col * kTile, r0 = tile_row * kTile;
   cv::Mat acc;
   int prev_step = 0;
   for (int step : kLevels) {
-    // Level grid: sample (j, i) is mosaic pixel (c0 + step (j - 1), r0 + step (i - 1)).
+    // Level grid with one sample of margin: sample (j, i) is the centre of the step x step
+    // block of mosaic pixels starting at (c0 + step (j - 1), r0 + step (i - 1)), i.e. at mosaic
+    // pixel coordinate c0 + step (j - 1) + (step - 1) / 2. cv::resize uses the same block-centre
+    // convention, so a coarse level is upsampled with one resize and a crop.
     const int n = kTile / step + 2;
-    const double oc = c0 - step, orow = r0 - step;
-    cv::Mat cur(n, n, CV_32F, cv::Scalar(0.5));
-    if (!acc.empty()) {
-      const double k = static_cast<double>(step) / prev_step;
-      const cv::Matx23d up(k, 0, 1 - k, 0, k, 1 - k);
-      cv::warpAffine(acc, cur, up, cur.size(), cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
-                     cv::BORDER_REPLICATE);
+    const double oc = static_cast<double>(c0) - step + (step - 1) / 2.0;
+    const double orow = static_cast<double>(r0) - step + (step - 1) / 2.0;
+    cv::Mat cur;
+    if (acc.empty()) {
+      cur = cv::Mat(n, n, CV_32F, cv::Scalar(0.5));
+    } else {
+      const int k = prev_step / step;
+      cv::Mat up;
+      cv::resize(acc, up, cv::Size(acc.cols * k, acc.rows * k), 0, 0, cv::INTER_LINEAR);
+      cur = up(cv::Rect(k - 1, k - 1, n, n)).clone();
     }
     for (const Octave& o : background) {
       if (o.level == step) AddOctave(o, oc, orow, step, &cur);
@@ -326,12 +336,11 @@ cv::Mat SyntheticGround::Impl::Generate(int64_t tile_col, int64_t tile_row) cons
           {0, 0}, {static_cast<float>(n - 1), 0}, {0, static_cast<float>(n - 1)}};
       cv::Point2f src_pts[3];
       for (int p = 0; p < 3; ++p) {
-        const Eigen::Vector2d s =
+        const Eigen::Vector2d sp =
             SourcePixelFromMosaic(oc + step * dst_pts[p].x, orow + step * dst_pts[p].y);
-        src_pts[p] = cv::Point2f(static_cast<float>(s.x()), static_cast<float>(s.y()));
+        src_pts[p] = cv::Point2f(static_cast<float>(sp.x()), static_cast<float>(sp.y()));
       }
-      // Double precision affine from the three points (getAffineTransform is exact for 3).
-      cv::Mat m = cv::getAffineTransform(dst_pts, src_pts);
+      const cv::Mat m = cv::getAffineTransform(dst_pts, src_pts);
       cv::Mat value, w;
       cv::warpAffine(source, value, m, cur.size(), cv::INTER_CUBIC | cv::WARP_INVERSE_MAP,
                      cv::BORDER_REPLICATE);
@@ -343,6 +352,20 @@ cv::Mat SyntheticGround::Impl::Generate(int64_t tile_col, int64_t tile_row) cons
     }
     for (const Octave& o : detail) {
       if (o.level == step) AddOctave(o, oc, orow, step, &cur);
+    }
+    if (step == 1 && pixel_texture_std > 0) {
+      // Finest texture: independent per mosaic pixel, hashed from its global position.
+      const uint64_t salt = SplitMix(options.seed * 0x2545F4914F6CDD1Dull + 77);
+      const float amp = static_cast<float>(pixel_texture_std * std::sqrt(3.0));
+      for (int i = 0; i < n; ++i) {
+        float* row = cur.ptr<float>(i);
+        const uint64_t hy = static_cast<uint64_t>(r0 + i - 1) * 0xD6E8FEB86659FD93ull;
+        for (int j = 0; j < n; ++j) {
+          row[j] +=
+              amp * HashUniform(SplitMix(
+                        salt ^ hy ^ (static_cast<uint64_t>(c0 + j - 1) * 0x9E3779B97F4A7C15ull)));
+        }
+      }
     }
     acc = cur;
     prev_step = step;

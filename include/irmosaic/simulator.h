@@ -19,7 +19,6 @@
 #include <functional>
 #include <limits>
 #include <memory>
-#include <mutex>
 #include <opencv2/core.hpp>
 #include <string>
 #include <vector>
@@ -239,6 +238,7 @@ class IRMOSAIC_EXPORT FlightSimulator {
   cv::Mat column_offset_;                         // CV_32F, full frame, counts.
   std::vector<std::pair<int, int>> dead_pixels_;  // (pixel offset, stuck value 0 or 1).
   cv::Mat undistort_map_x_, undistort_map_y_;     // Only with lens distortion.
+  std::vector<float> gaussian_table_;             // Unit normal samples for the noise.
 };
 
 }  // namespace irmosaic
