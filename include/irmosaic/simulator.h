@@ -215,7 +215,8 @@ class IRMOSAIC_EXPORT FlightSimulator {
   PosTrack TruePosTrack() const;
 
   // Writes frames/NNNNNN.<ext>, frames.csv (index,time_s,file), pos.csv (measured),
-  // true_pos.csv, camera.json, truth.json (placements format) and flight.json (the options).
+  // true_pos.csv, camera.json, truth.json (placements format), pos_only.json (placements from
+  // the logged POS alone: the baseline) and flight.json (the options).
   // Throws OutputError when the folder cannot be written.
   void WriteFlight(const std::string& dir, const WriteFlightOptions& options = {}) const;
 
