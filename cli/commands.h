@@ -5,5 +5,7 @@
 namespace irmosaic::cli {
 
 int RunFootprints(int argc, char** argv);
+int RunSynth(int argc, char** argv);
+int RunEval(int argc, char** argv);
 
 }  // namespace irmosaic::cli

@@ -18,6 +18,8 @@ struct Subcommand {
 constexpr Subcommand kSubcommands[] = {
     {"footprints", irmosaic::cli::RunFootprints,
      "frame footprints on the ground from a POS log and a camera file, as GeoJSON"},
+    {"synth", irmosaic::cli::RunSynth, "render a simulated sweep flight with its ground truth"},
+    {"eval", irmosaic::cli::RunEval, "score runs' placements against a simulator's truth"},
 };
 
 void PrintUsage(std::ostream& out) {

@@ -1,0 +1,72 @@
+// FlightSimulator::WriteFlight: a simulated flight on disk in the project's formats.
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <opencv2/imgcodecs.hpp>
+
+#include "irmosaic/error.h"
+#include "irmosaic/evaluator.h"
+#include "irmosaic/simulator.h"
+
+namespace irmosaic {
+
+void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptions& options) const {
+  namespace fs = std::filesystem;
+  const std::string& ext = options.image_extension;
+  if (ext != "tif" && ext != "png") {
+    throw InputError({"WriteFlight", 0, 0, "image_extension"}, "unsupported extension " + ext,
+                     "use tif or png");
+  }
+  std::error_code ec;
+  fs::create_directories(fs::path(dir) / "frames", ec);
+  if (ec) throw OutputError("cannot create " + dir + "/frames: " + ec.message());
+
+  camera().SaveJson((fs::path(dir) / "camera.json").string());
+  MeasuredPos().WriteCsv((fs::path(dir) / "pos.csv").string());
+  TruePosTrack().WriteCsv((fs::path(dir) / "true_pos.csv").string());
+  {
+    std::ofstream flight((fs::path(dir) / "flight.json").string());
+    flight << options_.ToJson() << "\n";
+    if (!flight) throw OutputError("cannot write " + dir + "/flight.json");
+  }
+  Placements truth;
+  truth.origin_lat_deg = frame_->origin_lat_deg();
+  truth.origin_lon_deg = frame_->origin_lon_deg();
+  truth.gsd_m = grid_.gsd_m;
+  std::ofstream list((fs::path(dir) / "frames.csv").string());
+  list << "index,time_s,file\n" << std::setprecision(17);
+  const std::vector<int> params = ext == "tif" ? std::vector<int>{cv::IMWRITE_TIFF_COMPRESSION, 1}
+                                               // Uncompressed: fast.
+                                               : std::vector<int>{cv::IMWRITE_PNG_COMPRESSION, 1};
+  for (int i = 0; i < frame_count(); ++i) {
+    const SimFrame f = Render(i);
+    char name[32];
+    std::snprintf(name, sizeof(name), "frames/%06d.%s", i, ext.c_str());
+    if (!cv::imwrite((fs::path(dir) / name).string(), f.image, params)) {
+      throw OutputError("cannot write " + dir + "/" + name);
+    }
+    list << i << "," << f.time_s << "," << name << "\n";
+    truth.frames.push_back({i, f.time_s, f.true_mosaic_from_image});
+    if (options.progress) options.progress(i + 1, frame_count());
+  }
+  if (!list) throw OutputError("cannot write " + dir + "/frames.csv");
+  truth.SaveJson((fs::path(dir) / "truth.json").string());
+
+  // The baseline a pipeline starts from: placements from the logged POS alone, on the grid a
+  // run would use (origin at the first logged record), so `irmosaic eval` has a reference.
+  const PosRecord first = MeasuredPosRecord(0);
+  const LocalFrame run_frame(first.lat_deg, first.lon_deg);
+  Placements pos_only;
+  pos_only.origin_lat_deg = first.lat_deg;
+  pos_only.origin_lon_deg = first.lon_deg;
+  pos_only.gsd_m = grid_.gsd_m;
+  for (int i = 0; i < frame_count(); ++i) {
+    const FrameGeometry g = ComputeFrameGeometry(
+        options_.camera, PoseFromRecord(MeasuredPosRecord(i)), run_frame, grid_, flat_ground_);
+    if (g.ok) pos_only.frames.push_back({i, i / options_.fps, g.mosaic_from_image});
+  }
+  pos_only.SaveJson((fs::path(dir) / "pos_only.json").string());
+}
+
+}  // namespace irmosaic

@@ -1,0 +1,168 @@
+#include "irmosaic/evaluator.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include "irmosaic/error.h"
+#include "irmosaic/local_frame.h"
+#include "irmosaic/simulator.h"
+
+namespace irmosaic {
+namespace {
+
+namespace fs = std::filesystem;
+
+// The truth of a short simulated flight (no rendering needed).
+Placements SimulatedTruth(int frames) {
+  SynthOptions o;
+  o.origin_lat_deg = 47.2;
+  o.origin_lon_deg = 8.5;
+  o.frame_count = frames;
+  FlightSimulator sim(o);
+  Placements truth;
+  truth.origin_lat_deg = 47.2;
+  truth.origin_lon_deg = 8.5;
+  truth.gsd_m = sim.grid().gsd_m;
+  for (int i = 0; i < frames; ++i)
+    truth.frames.push_back({i, i / 25.0, sim.TrueMosaicFromImage(i)});
+  return truth;
+}
+
+// The same placements expressed on another grid (origin, GSD), shifted there by `shift_px`.
+Placements Regrid(const Placements& truth, double lat, double lon, double gsd,
+                  const Eigen::Vector2d& shift_px) {
+  const LocalFrame from(truth.origin_lat_deg, truth.origin_lon_deg), to(lat, lon);
+  PlaneToGeographic from_to_geo(from);
+  const MosaicGrid from_grid{truth.gsd_m}, to_grid{gsd};
+  Placements run = truth;
+  run.origin_lat_deg = lat;
+  run.origin_lon_deg = lon;
+  run.gsd_m = gsd;
+  for (Placement& f : run.frames) {
+    std::vector<Eigen::Vector2d> img, mos;
+    for (int j = 0; j <= 8; ++j) {
+      for (int i = 0; i <= 8; ++i) {
+        const Eigen::Vector2d u(639.0 * i / 8, 511.0 * j / 8);
+        const Eigen::Vector2d ll = from_to_geo.LatLonFromPlane(
+            from_grid.PlaneFromPixel(ApplyHomography(f.mosaic_from_image, u)));
+        img.push_back(u);
+        mos.push_back(to_grid.PixelFromPlane(to.PlaneFromGeodetic(ll.x(), ll.y())) + shift_px);
+      }
+    }
+    f.mosaic_from_image = FitHomography(img, mos);
+  }
+  return run;
+}
+
+TEST(Evaluator, TruthScoresZero) {
+  const Placements truth = SimulatedTruth(40);
+  const Evaluator ev(truth);
+  const PlacementScore s = ev.ScorePlacements(truth, "truth");
+  EXPECT_EQ(s.frames_scored, 40);
+  EXPECT_EQ(s.frames_missing, 0);
+  EXPECT_LT(s.rmse_px.max, 1e-9);
+  EXPECT_LT(s.absolute_rmse_m, 1e-9);
+  EXPECT_DOUBLE_EQ(s.rmse_px.share_within_1px, 1.0);
+}
+
+TEST(Evaluator, TwoPixelShiftScoresTwoPixels) {
+  const Placements truth = SimulatedTruth(40);
+  const Evaluator ev(truth);
+  Placements run = truth;
+  for (Placement& f : run.frames) {
+    Eigen::Matrix3d shift = Eigen::Matrix3d::Identity();
+    shift(0, 2) = 2.0;  // 2 px east.
+    f.mosaic_from_image = shift * f.mosaic_from_image;
+  }
+  const PlacementScore s = ev.ScorePlacements(run);
+  EXPECT_NEAR(s.rmse_px.mean, 2.0, 1e-6);
+  EXPECT_NEAR(s.rmse_px.max, 2.0, 1e-6);
+  EXPECT_NEAR(s.georeference_offset_m.x(), 2.0 * truth.gsd_m, 1e-6);
+  EXPECT_NEAR(s.georeference_offset_m.y(), 0.0, 1e-6);
+  EXPECT_NEAR(s.relative_rmse_px, 0.0, 1e-6);
+  EXPECT_DOUBLE_EQ(s.rmse_px.share_within_1px, 0.0);
+}
+
+// A run's grid has its own origin (its first POS record, with errors) and GSD: the evaluator
+// converts through geodesy, so a 2 px shift on a 0.3 m grid reads 2 * 0.3 / gsd_truth px.
+TEST(Evaluator, ShiftOnAnotherGridIsConvertedThroughGeodesy) {
+  const Placements truth = SimulatedTruth(40);
+  const Evaluator ev(truth);
+  // 1.5 km and 0.9 km away from the truth's origin.
+  const double lat = 47.2 + 0.008, lon = 8.5 - 0.02;
+  const PlacementScore same = ev.ScorePlacements(Regrid(truth, lat, lon, 0.3, {0, 0}));
+  EXPECT_LT(same.rmse_px.max, 0.01);  // The regridding itself (homography fit) is exact enough.
+  const PlacementScore shifted = ev.ScorePlacements(Regrid(truth, lat, lon, 0.3, {0, 2}));
+  const double expected = 2.0 * 0.3 / truth.gsd_m;
+  EXPECT_NEAR(shifted.rmse_px.mean, expected, 0.01);
+  EXPECT_NEAR(shifted.rmse_px.max, expected, 0.02);
+  // 2 px south on the run's grid: a georeference offset of 0.6 m south.
+  EXPECT_NEAR(shifted.georeference_offset_m.y(), -0.6, 0.005);
+  EXPECT_NEAR(shifted.absolute_rmse_m, 0.6, 0.005);
+}
+
+TEST(Evaluator, MissingFramesAreCounted) {
+  const Placements truth = SimulatedTruth(20);
+  Placements run = truth;
+  run.frames.resize(15);
+  run.frames[3].mosaic_from_image(0, 0) = std::nan("");
+  const PlacementScore s = Evaluator(truth).ScorePlacements(run);
+  EXPECT_EQ(s.frames_scored, 14);
+  EXPECT_EQ(s.frames_missing, 6);
+}
+
+TEST(Evaluator, PairsScoredInTheOverlap) {
+  const Placements truth = SimulatedTruth(20);
+  const Evaluator ev(truth);
+  std::vector<PairRegistration> pairs;
+  for (int i = 0; i + 1 < 8; ++i) {
+    PairRegistration p;
+    p.base = i;
+    p.template_index = i + 1;
+    Eigen::Matrix3d shift = Eigen::Matrix3d::Identity();
+    shift(1, 2) = 2.0;  // 2 px down in the base image.
+    p.base_from_template =
+        shift * truth.frames[i].mosaic_from_image.inverse() * truth.frames[i + 1].mosaic_from_image;
+    pairs.push_back(p);
+  }
+  pairs.push_back({0, 12, Eigen::Matrix3d::Identity()});  // No overlap: not scored.
+  pairs.push_back({0, 99, Eigen::Matrix3d::Identity()});  // Not in the truth.
+  const PairsScore s = ev.ScorePairs(pairs);
+  EXPECT_EQ(s.pairs_given, 9);
+  EXPECT_EQ(s.pairs_scored, 7);
+  EXPECT_NEAR(s.rmse_px.mean, 2.0, 1e-6);
+  for (const PairScore& p : s.pairs) EXPECT_GE(p.points, 4);
+}
+
+TEST(Evaluator, FilesRoundTripAndPlot) {
+  const Placements truth = SimulatedTruth(30);
+  const fs::path dir = fs::temp_directory_path() / ("irmosaic_eval_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  truth.SaveJson((dir / "truth.json").string());
+  const Placements back = Placements::LoadJson((dir / "truth.json").string());
+  ASSERT_EQ(back.frames.size(), truth.frames.size());
+  EXPECT_EQ(back.frames[7].mosaic_from_image, truth.frames[7].mosaic_from_image);  // Exact.
+  EXPECT_EQ(back.origin_lat_deg, truth.origin_lat_deg);
+  const PlacementScore s = Evaluator(truth).ScorePlacements(back, "reloaded");
+  EXPECT_EQ(s.rmse_px.max, 0.0);
+  PlotRmseVsIndex({s}, (dir / "plot.png").string());
+  EXPECT_GT(fs::file_size(dir / "plot.png"), 1000u);
+  std::ofstream((dir / "bad.json").string()) << R"({"origin": {"lat_deg": 1}, "gsd_m": 1})";
+  EXPECT_THROW(Placements::LoadJson((dir / "bad.json").string()), InputError);
+  fs::remove_all(dir);
+}
+
+TEST(Evaluator, Statistics) {
+  const ErrorStats s = ComputeErrorStats({0.5, 1.0, 2.0, 4.0});
+  EXPECT_DOUBLE_EQ(s.mean, 1.875);
+  EXPECT_DOUBLE_EQ(s.median, 1.5);
+  EXPECT_DOUBLE_EQ(s.max, 4.0);
+  EXPECT_DOUBLE_EQ(s.share_within_1px, 0.5);
+  EXPECT_NEAR(s.p95, 2.0 + 0.85 * 2.0, 1e-12);
+}
+
+}  // namespace
+}  // namespace irmosaic
