@@ -18,6 +18,7 @@ struct Subcommand {
 constexpr Subcommand kSubcommands[] = {
     {"footprints", irmosaic::cli::RunFootprints,
      "frame footprints on the ground from a POS log and a camera file, as GeoJSON"},
+    {"export", irmosaic::cli::RunExport, "a store as one COG / GeoTIFF / GeoPackage in any CRS"},
 };
 
 void PrintUsage(std::ostream& out) {
