@@ -307,6 +307,9 @@ std::string ManifestToJson(const Manifest& manifest) {
         {"time_min_s", manifest.time_min_s},
         {"time_max_s", manifest.time_max_s}}},
       {"overview_vrts", manifest.overview_vrts},
+      {"display_range", manifest.display_hi > manifest.display_lo
+                            ? nlohmann::json{manifest.display_lo, manifest.display_hi}
+                            : nlohmann::json(nullptr)},
       {"levels", levels},
   };
   if (painted) {
@@ -369,6 +372,10 @@ Manifest ReadManifest(const fs::path& path) {
     m.time_min_s = frames.value("time_min_s", 0.0);
     m.time_max_s = frames.value("time_max_s", 0.0);
     m.overview_vrts = j.value("overview_vrts", std::vector<std::string>{});
+    if (j.contains("display_range") && j["display_range"].is_array()) {
+      m.display_lo = j["display_range"].at(0).get<double>();
+      m.display_hi = j["display_range"].at(1).get<double>();
+    }
     for (const auto& level : j.at("levels")) {
       TileSet tiles;
       for (const auto& tile : level.at("tiles")) {

@@ -76,8 +76,9 @@ struct Manifest {
   int64_t frame_count = 0;
   double time_min_s = 0.0, time_max_s = 0.0;
   std::string created_utc, published_utc;
-  std::string application_json;            // Caller's state, verbatim JSON ("" = none).
-  std::vector<std::string> overview_vrts;  // Relative paths, index l-1 for level l.
+  std::string application_json;               // Caller's state, verbatim JSON ("" = none).
+  double display_lo = 0.0, display_hi = 0.0;  // Ramp range of the .qlr (hi <= lo: unknown).
+  std::vector<std::string> overview_vrts;     // Relative paths, index l-1 for level l.
 };
 std::string ManifestToJson(const Manifest& manifest);
 // Parses manifest.json; throws InputError naming the file if it is not a store manifest.
@@ -94,7 +95,12 @@ TileBounds BoundsOf(const TileSet& tiles);
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
                           const std::vector<std::string>& overview_paths);
 // The QGIS layer definition: mosaic.vrt with a thermal ramp and auto-refresh, and the frames.
-std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, PixelType type);
+// display_lo/hi: the ramp's initial range (e.g. the data's 2-98 % percentiles); QGIS then
+// follows what the canvas shows.
+std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, double display_lo,
+                     double display_hi);
+// 2 % and 98 % percentiles of the covered samples of some tiles; false if none is covered.
+bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, double* hi);
 
 // Rewrites frames.gpkg (copy of the old file + inserted/replaced records, renamed into place).
 void WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,

@@ -1,4 +1,5 @@
 // The QGIS layer definition (.qlr) of a store: the mosaic with a thermal ramp, and the frames.
+#include <algorithm>
 #include <sstream>
 
 #include "store_internal.h"
@@ -36,11 +37,38 @@ constexpr RampStop kIronRamp[] = {{0.0, "#000000"},  {0.15, "#1f0c48"}, {0.3, "#
 
 }  // namespace
 
-std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, PixelType type) {
-  // Initial range only: the renderer recomputes a 2-98 % cumulative cut of what the canvas
-  // shows on every redraw, so the ramp follows the data as the mosaic grows.
-  const double lo = 0.0;
-  const double hi = type == PixelType::kByte ? 255.0 : type == PixelType::kUInt16 ? 65535.0 : 100.0;
+bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, double* hi) {
+  std::vector<float> values;
+  for (const TileImage* tile : tiles) {
+    cv::Mat as_float;
+    tile->data.convertTo(as_float, CV_32F);
+    // Every 4th sample of every 4th row is plenty for a display range.
+    for (int y = 0; y < as_float.rows; y += 4) {
+      const float* v = as_float.ptr<float>(y);
+      const uchar* a = tile->alpha.ptr<uchar>(y);
+      for (int x = 0; x < as_float.cols; x += 4) {
+        if (a[x]) values.push_back(v[x]);
+      }
+    }
+  }
+  if (values.empty()) return false;
+  const auto at = [&](double q) {
+    auto it = values.begin() + static_cast<std::ptrdiff_t>(q * (values.size() - 1));
+    std::nth_element(values.begin(), it, values.end());
+    return static_cast<double>(*it);
+  };
+  *lo = at(0.02);
+  *hi = at(0.98);
+  if (*hi <= *lo) *hi = *lo + 1.0;
+  return true;
+}
+
+std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, double display_lo,
+                     double display_hi) {
+  // A fixed range (the store rewrites the .qlr as the data's range grows): QGIS's own
+  // cumulative-cut statistics would count the uncovered zeros, which only the alpha band marks.
+  const double lo = display_lo;
+  const double hi = display_hi > display_lo ? display_hi : display_lo + 1.0;
   const std::string raster_id = layer_name + "_mosaic";
   const std::string frames_id = layer_name + "_frames";
   const std::string srs =
@@ -66,7 +94,7 @@ std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, 
     << "        <rasterrenderer type=\"singlebandpseudocolor\" band=\"1\" alphaBand=\"2\" "
        "opacity=\"1\" nodataColor=\"\" classificationMin=\""
     << lo << "\" classificationMax=\"" << hi << "\">\n"
-    << "          <minMaxOrigin><limits>CumulativeCut</limits><extent>UpdatedCanvas</extent>"
+    << "          <minMaxOrigin><limits>None</limits><extent>WholeRaster</extent>"
        "<statAccuracy>Estimated</statAccuracy><cumulativeCutLower>0.02</cumulativeCutLower>"
        "<cumulativeCutUpper>0.98</cumulativeCutUpper><stdDevFactor>2</stdDevFactor>"
        "</minMaxOrigin>\n"

@@ -178,6 +178,16 @@ struct TileStore::Impl {
   void RememberOverview(int level, const TileIndex& tile, const TileImage& image);
   int LevelsFor(const TileSet& level0) const;
   void WriteIndex(store::Manifest* next, int64_t generation);
+  void WriteQlr(const store::Manifest& m) {
+    double lo = m.display_lo, hi = m.display_hi;
+    if (hi <= lo) {  // Nothing painted yet: the type's range.
+      lo = 0.0;
+      hi = type == PixelType::kByte ? 255.0 : type == PixelType::kUInt16 ? 65535.0 : 100.0;
+    }
+    store::WriteFileAtomic(root / (options.layer_name + ".qlr"),
+                           store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi),
+                           options.durable);
+  }
   void CleanStaleFiles(int64_t keep_generation_from);
 };
 
@@ -380,6 +390,22 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       for (const auto& [index, image] : parents) next.levels[level].insert(index);
       children = std::move(parents);
     }
+    // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
+    std::vector<const TileImage*> top;
+    for (const auto& [index, image] : children) top.push_back(&image);
+    double lo = 0, hi = 0;
+    bool range_changed = false;
+    if (store::CoveredPercentiles(top, &lo, &hi)) {
+      if (next.display_hi > next.display_lo) {
+        lo = std::min(lo, next.display_lo);
+        hi = std::max(hi, next.display_hi);
+      }
+      const double span = std::max(hi - lo, 1e-6);
+      range_changed = std::abs(lo - next.display_lo) > 0.02 * span ||
+                      std::abs(hi - next.display_hi) > 0.02 * span;
+      next.display_lo = lo;
+      next.display_hi = hi;
+    }
     // 4. Frames, then the index: overview VRTs, mosaic.vrt, manifest.json.
     if (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg")) {
       store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
@@ -390,6 +416,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     next.time_max_s = time_max;
     next.application_json = application;
     WriteIndex(&next, generation);
+    if (range_changed) WriteQlr(next);
     manifest = std::move(next);
     propagate_pending.clear();
     CleanStaleFiles(generation - 3);
@@ -550,11 +577,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& options,
     s.WriteIndex(&s.manifest, 0);
   }
   s.manifest.compression = options.compression;
-  if (!fs::exists(s.root / (options.layer_name + ".qlr"))) {
-    store::WriteFileAtomic(s.root / (options.layer_name + ".qlr"),
-                           store::BuildQlr(options.layer_name, georef.crs_wkt, s.type),
-                           options.durable);
-  }
+  if (!fs::exists(s.root / (options.layer_name + ".qlr"))) s.WriteQlr(s.manifest);
   s.writer = std::thread([&s] { s.WriterLoop(); });
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }

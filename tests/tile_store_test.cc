@@ -82,6 +82,7 @@ struct Raster {
 // Reads mosaic.vrt (or any 2-band raster) whole through GDAL, optionally at an overview.
 Raster ReadThroughGdal(const fs::path& path, int overview = 0) {
   Raster r;
+  GDALAllRegister();  // The store may have been written by another process only.
   GDALDatasetH ds = GDALOpen(path.c_str(), GA_ReadOnly);
   if (ds == nullptr) return r;
   GDALGetGeoTransform(ds, r.gt);
