@@ -7,5 +7,6 @@ namespace irmosaic::cli {
 int RunFootprints(int argc, char** argv);
 int RunSynth(int argc, char** argv);
 int RunEval(int argc, char** argv);
+int RunExport(int argc, char** argv);
 
 }  // namespace irmosaic::cli

@@ -20,6 +20,7 @@ constexpr Subcommand kSubcommands[] = {
      "frame footprints on the ground from a POS log and a camera file, as GeoJSON"},
     {"synth", irmosaic::cli::RunSynth, "render a simulated sweep flight with its ground truth"},
     {"eval", irmosaic::cli::RunEval, "score runs' placements against a simulator's truth"},
+    {"export", irmosaic::cli::RunExport, "a store as one COG / GeoTIFF / GeoPackage in any CRS"},
 };
 
 void PrintUsage(std::ostream& out) {

@@ -1,0 +1,159 @@
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "irmosaic/export.h"
+
+namespace irmosaic {
+
+// Sample type of the mosaic; follows the input video (8-bit, 16-bit radiometric, float).
+enum class PixelType { kByte, kUInt16, kFloat32 };
+
+// OpenCV depth (CV_8U, CV_16U, CV_32F) and GDAL name ("Byte", "UInt16", "Float32").
+IRMOSAIC_EXPORT int CvDepthOf(PixelType type);
+IRMOSAIC_EXPORT const char* GdalTypeNameOf(PixelType type);
+
+// Where the mosaic sits on Earth: the mosaic plane's origin, pixel size and CRS.
+struct StoreGeoreference {
+  double origin_lat_deg = 0.0;
+  double origin_lon_deg = 0.0;
+  double gsd_m = 0.5;   // Level-0 pixel size on the plane, metres.
+  std::string crs_wkt;  // The plane's CRS, LocalFrame::CrsWkt().
+};
+
+// Configuration of a TileStore.
+struct TileStoreOptions {
+  std::string path;  // The store folder, e.g. out/flight.irmosaic.
+  // kCreate refuses an existing store, kOverwrite deletes it first, kResume continues it.
+  enum class Mode { kCreate, kOverwrite, kResume } mode = Mode::kCreate;
+  int tile_size = 512;                        // Pixels per tile side, a multiple of 16 (>= 64).
+  PixelType pixel_type = PixelType::kUInt16;  // Ignored on kResume (the store's own type wins).
+  // Tile compression: "ZSTD" (default, chosen by bench/store_bench), "DEFLATE", "LZW" or "NONE";
+  // a horizontal predictor is always used (floating-point predictor for Float32).
+  std::string compression = "ZSTD";
+  int compression_level = 1;     // ZSTD 1..22 / DEFLATE 1..9; low levels keep the writer fast.
+  int overview_levels = -1;      // Overview levels above level 0; -1: grow with the extent.
+  size_t max_cached_tiles = 64;  // Memory bound: clean tiles beyond this leave memory.
+  bool durable = false;          // fsync each file before its rename (power-loss safety).
+  std::string layer_name = "irmosaic";  // Name of the layers in the .qlr file.
+
+  // True if usable; otherwise *error says which option is wrong and why.
+  bool IsValid(std::string* error) const;
+};
+
+// One frame's footprint and registration quality, kept in frames.gpkg.
+struct FrameRecord {
+  int64_t index = 0;                           // Frame index in the flight (unique key).
+  double time_s = 0.0;                         // Frame time, seconds (POS time base).
+  std::array<Eigen::Vector2d, 4> footprint_m;  // Corners on the mosaic plane, metres, in order.
+  bool pos_only = false;                       // Placed from POS alone (no image registration).
+  double residual_px = 0.0;                    // Registration residual (RMS), pixels; 0 if unknown.
+  int inliers = 0;                             // Tie points kept by RANSAC.
+  std::string status;                          // Free text: "registered", "pos_only", ...
+};
+
+// The live output: a tiled georeferenced mosaic on disk that GDAL tools and QGIS read while it
+// grows. Level-0 tiles of tile_size pixels sit on a fixed grid of the mosaic plane (signed tile
+// indices; tile (row, col) holds mosaic pixels [col*T, col*T+T) x [row*T, row*T+T)), each a
+// compressed, internally tiled GeoTIFF with the mosaic CRS and an alpha band for coverage.
+// Overview levels are tiles too. A background writer thread writes dirty tiles; RequestPublish()
+// makes it replace the index (manifest.json, mosaic.vrt) atomically after the tiles it names, so
+// a reader sees the last published state or the next one, never a torn file, and a crash at any
+// moment leaves the last published state loadable (docs/store.md).
+//
+// Usage:
+//   TileStoreOptions options;  options.path = "out/flight.irmosaic";
+//   auto store = TileStore::Open(options, {lat0, lon0, 0.5, frame.CrsWkt()});
+//   store->Paint(ortho, weight, origin_px);  // per frame, any thread
+//   store->PutFrameRecord(record);
+//   store->RequestPublish();                 // e.g. once a second
+//   store->Close();                          // final publish; throws OutputError on failure
+class IRMOSAIC_EXPORT TileStore {
+ public:
+  // Opens or creates the store. Throws InputError (bad options, existing store in kCreate mode,
+  // store of another georeference in kResume mode) or OutputError (folder not writable), each
+  // naming the path and the fix. On kResume the store's georeference must match `georef`.
+  static std::unique_ptr<TileStore> Open(const TileStoreOptions& options,
+                                         const StoreGeoreference& georef);
+  // Opens an existing store's published state for reading only (no writer thread).
+  static std::unique_ptr<TileStore> OpenReadOnly(const std::string& path);
+  ~TileStore();  // Close()s; an error there is swallowed (call Close() to see it).
+  TileStore(const TileStore&) = delete;
+  TileStore& operator=(const TileStore&) = delete;
+
+  // Blends a rendered patch into level 0: out = w*image + (1-w)*existing, where an uncovered
+  // existing pixel counts as weight 0 (it takes the patch wherever w > 0). image has the store's
+  // pixel type (CvDepthOf), one channel; weight is CV_32F in [0, 1], same size; top-left at
+  // mosaic pixel origin_px (signed). Thread-safe. Blocks on disk only to reload a tile that left
+  // memory, or when more than twice max_cached_tiles tiles wait for the writer (back-pressure).
+  void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px);
+
+  // Inserts or replaces (by index) a frame's footprint record; published with the next
+  // generation.
+  void PutFrameRecord(const FrameRecord& record);
+  // Frame records known to the store (published ones after a resume, plus those put since).
+  std::vector<FrameRecord> FrameRecords() const;
+
+  // Caller state saved in manifest.json with each publish (e.g. what `run --resume` needs);
+  // any JSON text, stored verbatim under "application". Empty: nothing.
+  void SetApplicationState(const std::string& json_text);
+  // The application state of the last published (or resumed) manifest.
+  std::string application_state() const;
+
+  // Non-blocking: asks the writer thread to write dirty tiles, overviews, frames.gpkg, then
+  // mosaic.vrt and manifest.json; returns the generation that publish will have.
+  int64_t RequestPublish();
+  // Blocks until `generation` is published; throws OutputError if the writer failed meanwhile.
+  void WaitPublished(int64_t generation);
+  // Generation of the last manifest written (0: nothing published yet).
+  int64_t published_generation() const;
+
+  // Reads a level-0 window back (as last painted, published or not). image gets the store's
+  // pixel type, coverage is CV_8U 255 where painted, 0 elsewhere.
+  void ReadWindow(const cv::Rect& mosaic_px, cv::Mat* image, cv::Mat* coverage) const;
+
+  // Final publish, then joins the writer. Throws OutputError (full disk, permissions) naming
+  // the file; what was published before stays valid. Idempotent.
+  void Close();
+
+  // Figures of the store's work so far.
+  struct Stats {
+    int64_t tiles_written = 0;    // Tile files written (all levels).
+    int64_t bytes_written = 0;    // Bytes of tile files written.
+    int64_t publishes = 0;        // Generations published by this process.
+    int64_t tile_reloads = 0;     // Tiles read back from disk after leaving memory.
+    double paint_ms_total = 0.0;  // Time spent in Paint() by callers.
+    double writer_busy_ms = 0.0;  // Time the writer thread spent working.
+    double publish_p50_ms = 0.0;  // RequestPublish() to published, median.
+    double publish_p99_ms = 0.0;  // ... 99th percentile.
+    double publish_max_ms = 0.0;  // ... worst.
+    size_t cached_tiles = 0;      // Level-0 tiles in memory now.
+    size_t tiles_on_disk = 0;     // Level-0 tiles in the store.
+  };
+  Stats stats() const;
+
+  // Level-0 bounds of the painted tiles, in mosaic pixels (empty if nothing painted).
+  cv::Rect level0_bounds_px() const;
+  const TileStoreOptions& options() const;
+  const StoreGeoreference& georeference() const;
+  PixelType pixel_type() const;
+
+  struct Impl;
+
+ private:
+  explicit TileStore(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// Tile index (row or column) holding mosaic pixel `px` for tiles of `tile_size` (floor division).
+inline int64_t TileIndexOf(int64_t px, int tile_size) {
+  return px >= 0 ? px / tile_size : -((-px + tile_size - 1) / tile_size);
+}
+
+}  // namespace irmosaic

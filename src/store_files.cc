@@ -1,0 +1,603 @@
+// The files of a TileStore: tile GeoTIFFs, atomic writes, the manifest, the VRTs and frames.gpkg.
+#include <cpl_conv.h>
+#include <cpl_error.h>
+#include <fcntl.h>
+#include <gdal.h>
+#include <gdal_priv.h>
+#include <ogrsf_frmts.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <ctime>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "irmosaic/error.h"
+#include "store_internal.h"
+
+namespace irmosaic::store {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+// Collects GDAL errors of this thread while alive, so a failed write becomes one OutputError.
+class GdalErrorCapture {
+ public:
+  GdalErrorCapture() { CPLPushErrorHandlerEx(&Handler, this); }
+  ~GdalErrorCapture() { CPLPopErrorHandler(); }
+  bool failed() const { return !message_.empty(); }
+  const std::string& message() const { return message_; }
+
+ private:
+  static void CPL_STDCALL Handler(CPLErr level, CPLErrorNum, const char* text) {
+    auto* self = static_cast<GdalErrorCapture*>(CPLGetErrorHandlerUserData());
+    if (level >= CE_Failure && self->message_.empty()) self->message_ = text ? text : "error";
+  }
+  std::string message_;
+};
+
+std::atomic<int64_t> g_temp_counter{0};
+
+fs::path TemporaryPathFor(const fs::path& path) {
+  return path.parent_path() /
+         ("." + path.filename().string() + ".tmp" + std::to_string(::getpid()) + "_" +
+          std::to_string(g_temp_counter.fetch_add(1)));
+}
+
+void FsyncFile(const fs::path& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  if (fd >= 0) {
+    ::fsync(fd);
+    ::close(fd);
+  }
+}
+
+void RenameOrThrow(const fs::path& from, const fs::path& to, bool durable) {
+  if (durable) FsyncFile(from);
+  std::error_code error;
+  fs::rename(from, to, error);
+  if (error) {
+    fs::remove(from, error);
+    throw OutputError("cannot rename " + from.string() + " to " + to.string() + ": " +
+                      error.message() + ". Fix: check the store folder's permissions");
+  }
+  if (durable) FsyncFile(to.parent_path());
+}
+
+GDALDataType GdalTypeOf(PixelType type) {
+  switch (type) {
+    case PixelType::kByte:
+      return GDT_Byte;
+    case PixelType::kUInt16:
+      return GDT_UInt16;
+    case PixelType::kFloat32:
+      return GDT_Float32;
+  }
+  return GDT_Unknown;
+}
+
+std::string XmlEscape(const std::string& text) {
+  std::string out;
+  out.reserve(text.size());
+  for (char c : text) {
+    switch (c) {
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      default:
+        out += c;
+    }
+  }
+  return out;
+}
+
+std::string FormatGeoTransform(const double gt[6]) {
+  std::ostringstream text;
+  text.precision(17);
+  text << gt[0] << ", " << gt[1] << ", " << gt[2] << ", " << gt[3] << ", " << gt[4] << ", "
+       << gt[5];
+  return text.str();
+}
+
+}  // namespace
+
+double AlphaMaxOf(PixelType type) { return type == PixelType::kUInt16 ? 65535.0 : 255.0; }
+
+PixelType PixelTypeFromName(const std::string& name) {
+  if (name == "Byte") return PixelType::kByte;
+  if (name == "UInt16") return PixelType::kUInt16;
+  if (name == "Float32") return PixelType::kFloat32;
+  throw Error("unknown pixel type '" + name + "' (expected Byte, UInt16 or Float32)");
+}
+
+TileImage EmptyTile(int tile_size, PixelType type) {
+  return {cv::Mat::zeros(tile_size, tile_size, CvDepthOf(type)),
+          cv::Mat::zeros(tile_size, tile_size, CV_8U)};
+}
+
+std::string TileRelativePath(int level, const TileIndex& tile) {
+  return "tiles/" + std::to_string(level) + "/" + std::to_string(tile.first) + "_" +
+         std::to_string(tile.second) + ".tif";
+}
+
+void TileGeoTransform(double gsd_m, int tile_size, int level, const TileIndex& tile, double gt[6]) {
+  const double scale = std::ldexp(1.0, level);
+  // Level-0 pixel (col, row) is centred on plane (col*gsd, -row*gsd): its top-left corner is
+  // half a pixel up and left. A level-l tile starts at level-0 pixel tile*T*2^l.
+  const double col0 = static_cast<double>(tile.second) * tile_size * scale;
+  const double row0 = static_cast<double>(tile.first) * tile_size * scale;
+  gt[0] = (col0 - 0.5) * gsd_m;
+  gt[1] = gsd_m * scale;
+  gt[2] = 0.0;
+  gt[3] = -(row0 - 0.5) * gsd_m;
+  gt[4] = 0.0;
+  gt[5] = -gsd_m * scale;
+}
+
+bool IsTemporaryName(const std::string& filename) {
+  return !filename.empty() && filename[0] == '.' && filename.find(".tmp") != std::string::npos;
+}
+
+void WriteFileAtomic(const fs::path& path, const std::string& content, bool durable) {
+  const fs::path temp = TemporaryPathFor(path);
+  {
+    std::ofstream out(temp, std::ios::binary | std::ios::trunc);
+    out.write(content.data(), static_cast<std::streamsize>(content.size()));
+    out.flush();
+    if (!out) {
+      std::error_code ignored;
+      fs::remove(temp, ignored);
+      throw OutputError("cannot write " + path.string() + " (" + std::strerror(errno) +
+                        "). Fix: free disk space or check the folder's permissions; the "
+                        "published store is unchanged");
+    }
+  }
+  RenameOrThrow(temp, path, durable);
+}
+
+int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const double gt[6],
+                        const TileWriteSettings& settings) {
+  const fs::path temp = TemporaryPathFor(path);
+  const int size = tile.data.cols;
+  const int block = std::min(kBlockSize, size);
+  CPLStringList options;
+  options.SetNameValue("TILED", "YES");
+  options.SetNameValue("BLOCKXSIZE", std::to_string(block).c_str());
+  options.SetNameValue("BLOCKYSIZE", std::to_string(block).c_str());
+  options.SetNameValue("INTERLEAVE", "BAND");
+  options.SetNameValue("PHOTOMETRIC", "MINISBLACK");
+  options.SetNameValue("ALPHA", "YES");
+  options.SetNameValue("COMPRESS", settings.compression.c_str());
+  if (settings.compression != "NONE") {
+    options.SetNameValue("PREDICTOR", settings.type == PixelType::kFloat32 ? "3" : "2");
+    const std::string level = std::to_string(settings.compression_level);
+    if (settings.compression == "ZSTD") options.SetNameValue("ZSTD_LEVEL", level.c_str());
+    if (settings.compression == "DEFLATE") options.SetNameValue("ZLEVEL", level.c_str());
+  }
+  cv::Mat alpha;
+  tile.alpha.convertTo(alpha, CvDepthOf(settings.type), AlphaMaxOf(settings.type) / 255.0);
+  GdalErrorCapture capture;
+  GDALDriverH driver = GDALGetDriverByName("GTiff");
+  GDALDatasetH dataset =
+      GDALCreate(driver, temp.c_str(), size, size, 2, GdalTypeOf(settings.type), options.List());
+  if (dataset != nullptr) {
+    GDALSetGeoTransform(dataset, const_cast<double*>(gt));
+    GDALSetProjection(dataset, settings.crs_wkt.c_str());
+    const GDALDataType type = GdalTypeOf(settings.type);
+    CPLErr status = GDALRasterIO(GDALGetRasterBand(dataset, 1), GF_Write, 0, 0, size, size,
+                                 const_cast<uchar*>(tile.data.ptr()), size, size, type, 0,
+                                 static_cast<int>(tile.data.step[0]));
+    if (status == CE_None) {
+      status = GDALRasterIO(GDALGetRasterBand(dataset, 2), GF_Write, 0, 0, size, size, alpha.ptr(),
+                            size, size, type, 0, static_cast<int>(alpha.step[0]));
+    }
+    GDALClose(dataset);
+  }
+  std::error_code error;
+  const int64_t bytes = static_cast<int64_t>(fs::file_size(temp, error));
+  if (dataset == nullptr || capture.failed() || error) {
+    fs::remove(temp, error);
+    throw OutputError("cannot write tile " + path.string() + ": " +
+                      (capture.failed() ? capture.message() : std::string("GDAL failed")) +
+                      ". Fix: free disk space or check the folder's permissions; the published "
+                      "store is unchanged");
+  }
+  RenameOrThrow(temp, path, settings.durable);
+  return bytes;
+}
+
+TileImage ReadTile(const fs::path& path, int tile_size, PixelType type) {
+  GdalErrorCapture capture;
+  GDALDatasetH dataset =
+      GDALOpenEx(path.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY, nullptr, nullptr, nullptr);
+  if (dataset == nullptr || GDALGetRasterXSize(dataset) != tile_size ||
+      GDALGetRasterYSize(dataset) != tile_size || GDALGetRasterCount(dataset) != 2) {
+    if (dataset) GDALClose(dataset);
+    throw OutputError("cannot read tile " + path.string() + ": " +
+                      (capture.failed() ? capture.message() : std::string("not a store tile")) +
+                      ". Fix: restore the file or start a new store (--overwrite)");
+  }
+  TileImage tile = EmptyTile(tile_size, type);
+  cv::Mat alpha(tile_size, tile_size, CvDepthOf(type));
+  const GDALDataType gdal_type = GdalTypeOf(type);
+  CPLErr status = GDALRasterIO(GDALGetRasterBand(dataset, 1), GF_Read, 0, 0, tile_size, tile_size,
+                               tile.data.ptr(), tile_size, tile_size, gdal_type, 0,
+                               static_cast<int>(tile.data.step[0]));
+  if (status == CE_None) {
+    status = GDALRasterIO(GDALGetRasterBand(dataset, 2), GF_Read, 0, 0, tile_size, tile_size,
+                          alpha.ptr(), tile_size, tile_size, gdal_type, 0,
+                          static_cast<int>(alpha.step[0]));
+  }
+  GDALClose(dataset);
+  if (status != CE_None) {
+    throw OutputError("cannot read tile " + path.string() + ": " + capture.message() +
+                      ". Fix: restore the file or start a new store (--overwrite)");
+  }
+  tile.alpha = alpha > 0;
+  return tile;
+}
+
+TileImage HalveTile(const TileImage& tile) {
+  cv::Mat covered, values, sum_values, sum_covered;
+  tile.alpha.convertTo(covered, CV_32F, 1.0 / 255.0);
+  tile.data.convertTo(values, CV_32F);
+  values = values.mul(covered);
+  const cv::Size half(tile.data.cols / 2, tile.data.rows / 2);
+  // INTER_AREA at exactly 1/2 is the 2x2 mean.
+  cv::resize(values, sum_values, half, 0, 0, cv::INTER_AREA);
+  cv::resize(covered, sum_covered, half, 0, 0, cv::INTER_AREA);
+  TileImage out;
+  cv::Mat mean;
+  cv::divide(sum_values, cv::max(sum_covered, 1e-6f), mean);
+  out.alpha = sum_covered > 0.0f;
+  mean.setTo(0.0f, ~out.alpha);
+  mean.convertTo(out.data, tile.data.depth());  // Rounds to nearest for integer types.
+  return out;
+}
+
+std::string ManifestToJson(const Manifest& manifest) {
+  using nlohmann::json;
+  json levels = json::array();
+  for (size_t level = 0; level < manifest.levels.size(); ++level) {
+    json tiles = json::array();
+    for (const TileIndex& tile : manifest.levels[level]) tiles.push_back({tile.first, tile.second});
+    levels.push_back({{"level", level},
+                      {"gsd_m", manifest.georef.gsd_m * std::ldexp(1.0, static_cast<int>(level))},
+                      {"path_pattern", "tiles/" + std::to_string(level) + "/{row}_{col}.tif"},
+                      {"tiles", tiles}});
+  }
+  const TileBounds bounds = BoundsOf(manifest.levels.empty() ? TileSet{} : manifest.levels[0]);
+  const bool painted = !manifest.levels.empty() && !manifest.levels[0].empty();
+  const double t = manifest.tile_size, gsd = manifest.georef.gsd_m;
+  json j = {
+      {"format", kFormatName},
+      {"format_version", kFormatVersion},
+      {"generation", manifest.generation},
+      {"created_utc", manifest.created_utc},
+      {"published_utc", manifest.published_utc},
+      {"crs_wkt", manifest.georef.crs_wkt},
+      {"origin",
+       {{"lat_deg", manifest.georef.origin_lat_deg}, {"lon_deg", manifest.georef.origin_lon_deg}}},
+      {"gsd_m", gsd},
+      {"pixel_convention", "level-0 pixel (col,row) centred at plane (col*gsd_m, -row*gsd_m)"},
+      {"tile_size", manifest.tile_size},
+      {"block_size", manifest.block_size},
+      {"data_type", GdalTypeNameOf(manifest.type)},
+      {"alpha_max", AlphaMaxOf(manifest.type)},
+      {"compression", manifest.compression},
+      {"vrt", "mosaic.vrt"},
+      {"frames",
+       {{"path", "frames.gpkg"},
+        {"layer", "frames"},
+        {"count", manifest.frame_count},
+        {"time_min_s", manifest.time_min_s},
+        {"time_max_s", manifest.time_max_s}}},
+      {"overview_vrts", manifest.overview_vrts},
+      {"display_range", manifest.display_hi > manifest.display_lo
+                            ? nlohmann::json{manifest.display_lo, manifest.display_hi}
+                            : nlohmann::json(nullptr)},
+      {"levels", levels},
+  };
+  if (painted) {
+    j["bounds_px"] = {{"col_min", bounds.col0 * t},
+                      {"row_min", bounds.row0 * t},
+                      {"col_max", bounds.col1 * t},
+                      {"row_max", bounds.row1 * t}};
+    j["bounds_m"] = {{"x_min", (bounds.col0 * t - 0.5) * gsd},
+                     {"x_max", (bounds.col1 * t - 0.5) * gsd},
+                     {"y_min", -(bounds.row1 * t - 0.5) * gsd},
+                     {"y_max", -(bounds.row0 * t - 0.5) * gsd}};
+  } else {
+    j["bounds_px"] = nullptr;
+    j["bounds_m"] = nullptr;
+  }
+  j["application"] =
+      manifest.application_json.empty() ? json(nullptr) : json::parse(manifest.application_json);
+  return j.dump(1) + "\n";
+}
+
+Manifest ReadManifest(const fs::path& path) {
+  std::ifstream in(path);
+  if (!in) {
+    throw InputError({path.string(), 0, 0, ""}, "cannot open the store manifest",
+                     "give the folder of an irmosaic store (it holds manifest.json)");
+  }
+  nlohmann::json j;
+  try {
+    in >> j;
+  } catch (const nlohmann::json::exception& e) {
+    throw InputError({path.string(), 0, 0, ""},
+                     std::string("manifest is not valid JSON: ") + e.what(),
+                     "restore the store or start a new one (--overwrite)");
+  }
+  if (j.value("format", "") != kFormatName) {
+    throw InputError({path.string(), 0, 0, "format"}, "not an irmosaic store manifest",
+                     "give the folder of an irmosaic store");
+  }
+  if (j.value("format_version", 0) > kFormatVersion) {
+    throw InputError({path.string(), 0, 0, "format_version"},
+                     "store format version " + std::to_string(j.value("format_version", 0)) +
+                         " is newer than this program's " + std::to_string(kFormatVersion),
+                     "use a newer irmosaic");
+  }
+  try {
+    Manifest m;
+    m.generation = j.at("generation").get<int64_t>();
+    m.created_utc = j.value("created_utc", "");
+    m.published_utc = j.value("published_utc", "");
+    m.georef.crs_wkt = j.at("crs_wkt").get<std::string>();
+    m.georef.origin_lat_deg = j.at("origin").at("lat_deg").get<double>();
+    m.georef.origin_lon_deg = j.at("origin").at("lon_deg").get<double>();
+    m.georef.gsd_m = j.at("gsd_m").get<double>();
+    m.tile_size = j.at("tile_size").get<int>();
+    m.block_size = j.value("block_size", kBlockSize);
+    m.type = PixelTypeFromName(j.at("data_type").get<std::string>());
+    m.compression = j.value("compression", "ZSTD");
+    const auto& frames = j.at("frames");
+    m.frame_count = frames.value("count", int64_t{0});
+    m.time_min_s = frames.value("time_min_s", 0.0);
+    m.time_max_s = frames.value("time_max_s", 0.0);
+    m.overview_vrts = j.value("overview_vrts", std::vector<std::string>{});
+    if (j.contains("display_range") && j["display_range"].is_array()) {
+      m.display_lo = j["display_range"].at(0).get<double>();
+      m.display_hi = j["display_range"].at(1).get<double>();
+    }
+    for (const auto& level : j.at("levels")) {
+      TileSet tiles;
+      for (const auto& tile : level.at("tiles")) {
+        tiles.insert({tile.at(0).get<int64_t>(), tile.at(1).get<int64_t>()});
+      }
+      m.levels.push_back(std::move(tiles));
+    }
+    if (j.contains("application") && !j["application"].is_null()) {
+      m.application_json = j["application"].dump();
+    }
+    return m;
+  } catch (const std::exception& e) {
+    throw InputError({path.string(), 0, 0, ""}, std::string("manifest is incomplete: ") + e.what(),
+                     "restore the store or start a new one (--overwrite)");
+  }
+}
+
+TileBounds BoundsOf(const TileSet& tiles) {
+  if (tiles.empty()) return {};
+  TileBounds b{tiles.begin()->first, tiles.begin()->first + 1, tiles.begin()->second,
+               tiles.begin()->second + 1};
+  for (const TileIndex& t : tiles) {
+    b.row0 = std::min(b.row0, t.first);
+    b.row1 = std::max(b.row1, t.first + 1);
+    b.col0 = std::min(b.col0, t.second);
+    b.col1 = std::max(b.col1, t.second + 1);
+  }
+  return b;
+}
+
+std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
+                          const std::vector<std::string>& overview_paths) {
+  const int64_t t = manifest.tile_size;
+  const int64_t scale = int64_t{1} << level;
+  // Every level spans the same ground as level 0 (GDAL requires it of overviews); T is a
+  // multiple of 2^level, so these are whole pixels.
+  const int64_t x0 = bounds.col0 * t / scale, y0 = bounds.row0 * t / scale;
+  const int64_t width = (bounds.col1 - bounds.col0) * t / scale;
+  const int64_t height = (bounds.row1 - bounds.row0) * t / scale;
+  double gt[6];
+  TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, 0, {bounds.row0, bounds.col0}, gt);
+  gt[1] *= static_cast<double>(scale);
+  gt[5] *= static_cast<double>(scale);
+  const std::string type = GdalTypeNameOf(manifest.type);
+  const std::string prefix = level == 0 ? "tiles/0/" : "";  // Level VRTs sit beside their tiles.
+
+  std::ostringstream xml;
+  xml << "<VRTDataset rasterXSize=\"" << width << "\" rasterYSize=\"" << height << "\">\n"
+      << "  <SRS dataAxisToSRSAxisMapping=\"1,2\">" << XmlEscape(manifest.georef.crs_wkt)
+      << "</SRS>\n"
+      << "  <GeoTransform>" << FormatGeoTransform(gt) << "</GeoTransform>\n"
+      << "  <Metadata>\n    <MDI key=\"IRMOSAIC_GENERATION\">" << manifest.generation
+      << "</MDI>\n    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
+  const TileSet& tiles = manifest.levels[level];
+  for (int band = 1; band <= 2; ++band) {
+    xml << "  <VRTRasterBand dataType=\"" << type << "\" band=\"" << band << "\">\n"
+        << "    <ColorInterp>" << (band == 1 ? "Gray" : "Alpha") << "</ColorInterp>\n";
+    for (const std::string& overview : overview_paths) {
+      xml << "    <Overview><SourceFilename relativeToVRT=\"1\">" << XmlEscape(overview)
+          << "</SourceFilename><SourceBand>" << band << "</SourceBand></Overview>\n";
+    }
+    for (const TileIndex& tile : tiles) {
+      // Tile origin in this level's pixels, relative to the VRT; clip what lies outside.
+      const int64_t dx = tile.second * t - x0, dy = tile.first * t - y0;
+      const int64_t sx = std::max<int64_t>(0, -dx), sy = std::max<int64_t>(0, -dy);
+      const int64_t w = std::min(t - sx, width - std::max<int64_t>(0, dx));
+      const int64_t h = std::min(t - sy, height - std::max<int64_t>(0, dy));
+      if (w <= 0 || h <= 0) continue;
+      xml << "    <SimpleSource>\n      <SourceFilename relativeToVRT=\"1\">" << prefix
+          << tile.first << "_" << tile.second << ".tif</SourceFilename>\n"
+          << "      <SourceBand>" << band << "</SourceBand>\n"
+          << "      <SourceProperties RasterXSize=\"" << t << "\" RasterYSize=\"" << t
+          << "\" DataType=\"" << type << "\" BlockXSize=\"" << std::min<int64_t>(kBlockSize, t)
+          << "\" BlockYSize=\"" << std::min<int64_t>(kBlockSize, t) << "\"/>\n"
+          << "      <SrcRect xOff=\"" << sx << "\" yOff=\"" << sy << "\" xSize=\"" << w
+          << "\" ySize=\"" << h << "\"/>\n"
+          << "      <DstRect xOff=\"" << std::max<int64_t>(0, dx) << "\" yOff=\""
+          << std::max<int64_t>(0, dy) << "\" xSize=\"" << w << "\" ySize=\"" << h << "\"/>\n"
+          << "    </SimpleSource>\n";
+    }
+    xml << "  </VRTRasterBand>\n";
+  }
+  xml << "</VRTDataset>\n";
+  return xml.str();
+}
+
+namespace {
+
+OGRSpatialReference SpatialReferenceOf(const std::string& wkt) {
+  OGRSpatialReference srs;
+  srs.importFromWkt(wkt.c_str());
+  srs.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+  return srs;
+}
+
+void FillFeature(OGRFeature* feature, const FrameRecord& record, const OGRSpatialReference* srs) {
+  feature->SetFID(record.index + 1);  // GeoPackage FIDs are positive.
+  feature->SetField("frame_index", static_cast<GIntBig>(record.index));
+  feature->SetField("time_s", record.time_s);
+  feature->SetField("pos_only", record.pos_only ? 1 : 0);
+  feature->SetField("residual_px", record.residual_px);
+  feature->SetField("inliers", record.inliers);
+  feature->SetField("status", record.status.c_str());
+  OGRLinearRing ring;
+  for (int c = 0; c <= 4; ++c) {
+    ring.addPoint(record.footprint_m[c % 4].x(), record.footprint_m[c % 4].y());
+  }
+  OGRPolygon polygon;
+  polygon.addRing(&ring);
+  polygon.assignSpatialReference(const_cast<OGRSpatialReference*>(srs));
+  feature->SetGeometry(&polygon);
+}
+
+}  // namespace
+
+void WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
+                     const std::vector<FrameRecord>& changed, bool durable) {
+  const fs::path temp = TemporaryPathFor(path);
+  std::error_code error;
+  const bool existed = fs::exists(path);
+  if (existed) fs::copy_file(path, temp, fs::copy_options::overwrite_existing, error);
+  const auto fail = [&](const std::string& why) {
+    std::error_code ignored;
+    fs::remove(temp, ignored);
+    throw OutputError("cannot write " + path.string() + ": " + why +
+                      ". Fix: free disk space or check the folder's permissions; the published "
+                      "store is unchanged");
+  };
+  if (error) fail(error.message());
+  // The temporary copy is private until renamed: no journal needed.
+  CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", "OFF");
+  CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", "OFF");
+  GdalErrorCapture capture;
+  const OGRSpatialReference srs = SpatialReferenceOf(crs_wkt);
+  GDALDataset* dataset = nullptr;
+  if (existed) {
+    dataset = GDALDataset::Open(temp.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
+  } else {
+    GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("GPKG");
+    dataset = driver ? driver->Create(temp.c_str(), 0, 0, 0, GDT_Unknown, nullptr) : nullptr;
+    if (dataset != nullptr) {
+      const char* layer_options[] = {"GEOMETRY_NAME=geom", "FID=fid", nullptr};
+      OGRLayer* layer = dataset->CreateLayer("frames", const_cast<OGRSpatialReference*>(&srs),
+                                             wkbPolygon, const_cast<char**>(layer_options));
+      if (layer != nullptr) {
+        OGRFieldDefn index("frame_index", OFTInteger64);
+        OGRFieldDefn time("time_s", OFTReal);
+        OGRFieldDefn pos_only("pos_only", OFTInteger);
+        pos_only.SetSubType(OFSTBoolean);
+        OGRFieldDefn residual("residual_px", OFTReal);
+        OGRFieldDefn inliers("inliers", OFTInteger);
+        OGRFieldDefn status("status", OFTString);
+        for (OGRFieldDefn* field : {&index, &time, &pos_only, &residual, &inliers, &status}) {
+          layer->CreateField(field);
+        }
+      }
+    }
+  }
+  OGRLayer* layer = dataset ? dataset->GetLayerByName("frames") : nullptr;
+  if (layer != nullptr) {
+    dataset->StartTransaction();
+    for (const FrameRecord& record : changed) {
+      OGRFeature* existing = layer->GetFeature(record.index + 1);
+      OGRFeature feature(layer->GetLayerDefn());
+      FillFeature(&feature, record, layer->GetSpatialRef());
+      if (existing != nullptr) {
+        OGRFeature::DestroyFeature(existing);
+        if (layer->SetFeature(&feature) != OGRERR_NONE) break;
+      } else if (layer->CreateFeature(&feature) != OGRERR_NONE) {
+        break;
+      }
+    }
+    dataset->CommitTransaction();
+  }
+  if (dataset != nullptr) GDALClose(dataset);
+  CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", nullptr);
+  CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", nullptr);
+  if (dataset == nullptr || layer == nullptr || capture.failed()) {
+    fail(capture.failed() ? capture.message() : "GDAL cannot create the GeoPackage");
+  }
+  RenameOrThrow(temp, path, durable);
+}
+
+std::vector<FrameRecord> ReadFramesGpkg(const fs::path& path) {
+  std::vector<FrameRecord> records;
+  if (!fs::exists(path)) return records;
+  GdalErrorCapture capture;
+  GDALDataset* dataset = GDALDataset::Open(path.c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY);
+  OGRLayer* layer = dataset ? dataset->GetLayerByName("frames") : nullptr;
+  if (layer == nullptr) {
+    if (dataset) GDALClose(dataset);
+    throw InputError({path.string(), 0, 0, ""}, "not a frames GeoPackage",
+                     "restore the file or start a new store (--overwrite)");
+  }
+  for (auto& feature : *layer) {
+    FrameRecord record;
+    record.index = feature->GetFieldAsInteger64("frame_index");
+    record.time_s = feature->GetFieldAsDouble("time_s");
+    record.pos_only = feature->GetFieldAsInteger("pos_only") != 0;
+    record.residual_px = feature->GetFieldAsDouble("residual_px");
+    record.inliers = feature->GetFieldAsInteger("inliers");
+    record.status = feature->GetFieldAsString("status");
+    const OGRGeometry* geometry = feature->GetGeometryRef();
+    if (geometry && wkbFlatten(geometry->getGeometryType()) == wkbPolygon) {
+      const OGRLinearRing* ring = geometry->toPolygon()->getExteriorRing();
+      for (int c = 0; c < 4 && ring && c < ring->getNumPoints(); ++c) {
+        record.footprint_m[c] = {ring->getX(c), ring->getY(c)};
+      }
+    }
+    records.push_back(record);
+  }
+  GDALClose(dataset);
+  return records;
+}
+
+std::string UtcNow() {
+  const std::time_t now = std::chrono::system_clock::to_time_t(std::chrono::system_clock::now());
+  std::tm utc{};
+  gmtime_r(&now, &utc);
+  char text[32];
+  std::strftime(text, sizeof(text), "%Y-%m-%dT%H:%M:%SZ", &utc);
+  return text;
+}
+
+}  // namespace irmosaic::store

@@ -1,0 +1,113 @@
+#pragma once
+// Private helpers of the TileStore (src/tile_store.cc): the files of a store and how each is
+// written. Not installed; see docs/store.md for the layout and the manifest schema.
+
+#include <cstdint>
+#include <filesystem>
+#include <map>
+#include <opencv2/core.hpp>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "irmosaic/tile_store.h"
+
+namespace irmosaic::store {
+
+inline constexpr const char* kFormatName = "irmosaic-store";
+inline constexpr int kFormatVersion = 1;
+inline constexpr int kBlockSize = 256;  // Internal GeoTIFF tiling (or the tile size if smaller).
+
+using TileIndex = std::pair<int64_t, int64_t>;  // (row, col), signed.
+using TileSet = std::set<TileIndex>;
+
+// A tile in memory: samples of the store's type and coverage as CV_8U 0/255.
+struct TileImage {
+  cv::Mat data;
+  cv::Mat alpha;
+  bool empty() const { return data.empty(); }
+};
+
+// Alpha value meaning "covered" in files: 65535 for UInt16 (GDAL's default alpha maximum for
+// 16-bit), 255 otherwise (GDAL and QGIS read a Byte or Float32 alpha on a 0..255 scale).
+double AlphaMaxOf(PixelType type);
+PixelType PixelTypeFromName(const std::string& name);  // Throws Error on an unknown name.
+
+TileImage EmptyTile(int tile_size, PixelType type);
+
+// Path of tile (row, col) of `level`, relative to the store: tiles/<level>/<row>_<col>.tif.
+std::string TileRelativePath(int level, const TileIndex& tile);
+// GDAL geotransform of a tile of `level` (pixel size gsd * 2^level).
+void TileGeoTransform(double gsd_m, int tile_size, int level, const TileIndex& tile, double gt[6]);
+
+struct TileWriteSettings {
+  PixelType type = PixelType::kUInt16;
+  std::string compression = "ZSTD";
+  int compression_level = 1;
+  std::string crs_wkt;
+  bool durable = false;
+};
+
+// Writes a tile GeoTIFF to a temporary name beside `path` and renames it into place. Returns the
+// file's size. Throws OutputError naming the file on any failure (the old file stays).
+int64_t WriteTileAtomic(const std::filesystem::path& path, const TileImage& tile,
+                        const double gt[6], const TileWriteSettings& settings);
+// Reads a tile written by WriteTileAtomic. Throws OutputError if unreadable or of another shape.
+TileImage ReadTile(const std::filesystem::path& path, int tile_size, PixelType type);
+
+// Writes `content` to path through a temporary name and a rename. Throws OutputError.
+void WriteFileAtomic(const std::filesystem::path& path, const std::string& content, bool durable);
+// True for names of temporaries left by an interrupted write (".<name>.tmp<pid>").
+bool IsTemporaryName(const std::string& filename);
+
+// Halves a tile (2x2 coverage-weighted mean); result is tile_size/2 square.
+TileImage HalveTile(const TileImage& tile);
+
+// The published index of a store: what manifest.json holds.
+struct Manifest {
+  int64_t generation = 0;
+  StoreGeoreference georef;
+  int tile_size = 512;
+  int block_size = kBlockSize;
+  PixelType type = PixelType::kUInt16;
+  std::string compression;
+  std::vector<TileSet> levels;  // levels[0]: level-0 tiles; then overview levels.
+  int64_t frame_count = 0;
+  double time_min_s = 0.0, time_max_s = 0.0;
+  std::string created_utc, published_utc;
+  std::string application_json;               // Caller's state, verbatim JSON ("" = none).
+  double display_lo = 0.0, display_hi = 0.0;  // Ramp range of the .qlr (hi <= lo: unknown).
+  std::vector<std::string> overview_vrts;     // Relative paths, index l-1 for level l.
+};
+std::string ManifestToJson(const Manifest& manifest);
+// Parses manifest.json; throws InputError naming the file if it is not a store manifest.
+Manifest ReadManifest(const std::filesystem::path& path);
+
+// Level-0 tile bounds [row0, row1) x [col0, col1) aligned for `levels` overview levels; the tile
+// (0,0) alone if there are no tiles.
+struct TileBounds {
+  int64_t row0 = 0, row1 = 1, col0 = 0, col1 = 1;
+};
+TileBounds BoundsOf(const TileSet& tiles);
+
+// mosaic.vrt and the per-level overview VRTs of a generation, as XML text.
+std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
+                          const std::vector<std::string>& overview_paths);
+// The QGIS layer definition: mosaic.vrt with a thermal ramp and auto-refresh, and the frames.
+// display_lo/hi: the ramp's initial range (e.g. the data's 2-98 % percentiles); QGIS then
+// follows what the canvas shows.
+std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, double display_lo,
+                     double display_hi);
+// 2 % and 98 % percentiles of the covered samples of some tiles; false if none is covered.
+bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, double* hi);
+
+// Rewrites frames.gpkg (copy of the old file + inserted/replaced records, renamed into place).
+void WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,
+                     const std::vector<FrameRecord>& changed, bool durable);
+// All records of a frames.gpkg (empty if the file is absent).
+std::vector<FrameRecord> ReadFramesGpkg(const std::filesystem::path& path);
+
+std::string UtcNow();
+
+}  // namespace irmosaic::store

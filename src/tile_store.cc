@@ -1,0 +1,824 @@
+// TileStore: the level-0 tile cache painted by callers, and the writer thread that publishes.
+#include "irmosaic/tile_store.h"
+
+#include <gdal.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <list>
+#include <mutex>
+#include <thread>
+#include <unordered_map>
+
+#include "irmosaic/error.h"
+#include "nlohmann/json.hpp"
+#include "store_internal.h"
+
+namespace irmosaic {
+
+namespace fs = std::filesystem;
+using store::TileImage;
+using store::TileIndex;
+using store::TileSet;
+
+int CvDepthOf(PixelType type) {
+  switch (type) {
+    case PixelType::kByte:
+      return CV_8U;
+    case PixelType::kUInt16:
+      return CV_16U;
+    case PixelType::kFloat32:
+      return CV_32F;
+  }
+  return CV_8U;
+}
+
+const char* GdalTypeNameOf(PixelType type) {
+  switch (type) {
+    case PixelType::kByte:
+      return "Byte";
+    case PixelType::kUInt16:
+      return "UInt16";
+    case PixelType::kFloat32:
+      return "Float32";
+  }
+  return "Byte";
+}
+
+bool TileStoreOptions::IsValid(std::string* error) const {
+  std::string problem;
+  if (path.empty()) {
+    problem = "path is empty: give the store folder";
+  } else if (tile_size < 64 || tile_size > 8192 || tile_size % 16 != 0) {
+    problem = "tile_size " + std::to_string(tile_size) + " must be a multiple of 16 in [64, 8192]";
+  } else if (compression != "ZSTD" && compression != "DEFLATE" && compression != "LZW" &&
+             compression != "NONE") {
+    problem = "compression '" + compression + "' must be ZSTD, DEFLATE, LZW or NONE";
+  } else if (compression_level < 1 || compression_level > 22 ||
+             (compression == "DEFLATE" && compression_level > 9)) {
+    problem = "compression_level " + std::to_string(compression_level) +
+              " out of range (ZSTD 1..22, DEFLATE 1..9)";
+  } else if (overview_levels < -1 || overview_levels > 16 ||
+             (overview_levels > 0 && tile_size % (1 << overview_levels) != 0)) {
+    problem = "overview_levels " + std::to_string(overview_levels) +
+              " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
+  } else if (max_cached_tiles < 4) {
+    problem = "max_cached_tiles must be at least 4";
+  }
+  if (!problem.empty() && error) *error = problem;
+  return problem.empty();
+}
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// Largest number of overview levels a tile size allows (T must stay divisible by 2^levels).
+int MaxLevelsFor(int tile_size) {
+  int levels = 0;
+  while (levels < 16 && tile_size % (2 << levels) == 0 && (tile_size >> (levels + 1)) >= 8) {
+    ++levels;
+  }
+  return levels;
+}
+
+int64_t FloorDiv(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
+
+template <typename T>
+void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
+               cv::Mat* data, cv::Mat* alpha, const cv::Rect& tile_roi) {
+  for (int y = 0; y < patch_roi.height; ++y) {
+    const T* src = image.ptr<T>(patch_roi.y + y) + patch_roi.x;
+    const float* w = weight.ptr<float>(patch_roi.y + y) + patch_roi.x;
+    T* dst = data->ptr<T>(tile_roi.y + y) + tile_roi.x;
+    uchar* covered = alpha->ptr<uchar>(tile_roi.y + y) + tile_roi.x;
+    for (int x = 0; x < patch_roi.width; ++x) {
+      const float wx = w[x];
+      if (!(wx > 0.0f)) continue;  // Also skips NaN weights.
+      if constexpr (std::is_floating_point_v<T>) {
+        if (!std::isfinite(src[x])) continue;
+      }
+      if (covered[x] == 0 || wx >= 1.0f) {
+        dst[x] = src[x];
+        covered[x] = 255;
+      } else {
+        const float value =
+            wx * static_cast<float>(src[x]) + (1.0f - wx) * static_cast<float>(dst[x]);
+        dst[x] = cv::saturate_cast<T>(value);
+      }
+    }
+  }
+}
+
+}  // namespace
+
+struct TileStore::Impl {
+  TileStoreOptions options;
+  StoreGeoreference georef;
+  PixelType type = PixelType::kUInt16;
+  fs::path root;
+  bool read_only = false;
+  std::string created_utc;
+  int max_levels = 0;
+
+  // --- Shared state, under `mutex`.
+  mutable std::mutex mutex;
+  std::condition_variable changed;  // Any of: request, publish done, tile written.
+  struct CachedTile {
+    TileImage image;
+    bool dirty = false;    // Painted since its last snapshot by the writer.
+    bool writing = false;  // Snapshot taken, file not yet renamed into place: keep in memory.
+    uint64_t last_use = 0;
+  };
+  std::map<TileIndex, CachedTile> cache;
+  size_t dirty_count = 0;
+  uint64_t use_clock = 0;
+  TileSet level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
+  std::map<int64_t, FrameRecord> frames;
+  std::vector<FrameRecord> frames_changed;
+  std::string application_json;
+  bool application_dirty = false;
+  int64_t requested_generation = 0;
+  int64_t started_generation = 0;  // Generation the writer is working on (or last worked on).
+  int64_t published_generation = 0;
+  int64_t failed_generation = 0;  // Last generation whose publish failed.
+  std::string last_error;
+  bool stop = false;
+  std::map<int64_t, Clock::time_point> request_time_of;
+  std::vector<double> publish_latencies_ms;
+  Stats stats;
+
+  // --- Writer-thread state (only the writer touches these after Open).
+  store::Manifest manifest;   // The last published manifest.
+  TileSet propagate_pending;  // Level-0 tiles written by a failed publish: overviews owe them.
+  std::map<std::pair<int, TileIndex>, TileImage> overview_cache;
+  std::list<std::pair<int, TileIndex>> overview_lru;
+  std::thread writer;
+
+  fs::path PathOf(int level, const TileIndex& tile) const {
+    return root / store::TileRelativePath(level, tile);
+  }
+  store::TileWriteSettings WriteSettings() const {
+    return {type, options.compression, options.compression_level, georef.crs_wkt, options.durable};
+  }
+
+  CachedTile& TileLocked(const TileIndex& index, std::unique_lock<std::mutex>& lock);
+  void EvictLocked();
+  void WriterLoop();
+  void PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock);
+  std::map<TileIndex, TileImage> UpdateOverviewLevel(int level,
+                                                     const std::map<TileIndex, TileImage>& children,
+                                                     int64_t* bytes, int64_t* tiles);
+  TileImage OverviewTile(int level, const TileIndex& tile);
+  void RememberOverview(int level, const TileIndex& tile, const TileImage& image);
+  int LevelsFor(const TileSet& level0) const;
+  void WriteIndex(store::Manifest* next, int64_t generation);
+  void WriteQlr(const store::Manifest& m) {
+    double lo = m.display_lo, hi = m.display_hi;
+    if (hi <= lo) {  // Nothing painted yet: the type's range.
+      lo = 0.0;
+      hi = type == PixelType::kByte ? 255.0 : type == PixelType::kUInt16 ? 65535.0 : 100.0;
+    }
+    store::WriteFileAtomic(root / (options.layer_name + ".qlr"),
+                           store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi),
+                           options.durable);
+  }
+  void CleanStaleFiles(int64_t keep_generation_from);
+};
+
+TileStore::Impl::CachedTile& TileStore::Impl::TileLocked(const TileIndex& index,
+                                                         std::unique_lock<std::mutex>& lock) {
+  auto it = cache.find(index);
+  if (it == cache.end()) {
+    CachedTile tile;
+    if (level0_on_disk.count(index)) {
+      // Reload outside the lock so the writer is not held up by this read.
+      lock.unlock();
+      TileImage image = store::ReadTile(PathOf(0, index), options.tile_size, type);
+      lock.lock();
+      ++stats.tile_reloads;
+      it = cache.find(index);  // Another painter may have loaded it meanwhile.
+      if (it != cache.end()) return it->second;
+      tile.image = std::move(image);
+    } else {
+      tile.image = store::EmptyTile(options.tile_size, type);
+    }
+    it = cache.emplace(index, std::move(tile)).first;
+  }
+  it->second.last_use = ++use_clock;
+  return it->second;
+}
+
+void TileStore::Impl::EvictLocked() {
+  while (cache.size() > options.max_cached_tiles) {
+    auto victim = cache.end();
+    for (auto it = cache.begin(); it != cache.end(); ++it) {
+      if (it->second.dirty || it->second.writing) continue;
+      if (victim == cache.end() || it->second.last_use < victim->second.last_use) victim = it;
+    }
+    if (victim == cache.end()) return;  // All wait for the writer.
+    cache.erase(victim);
+  }
+}
+
+int TileStore::Impl::LevelsFor(const TileSet& level0) const {
+  if (options.overview_levels >= 0) return options.overview_levels;
+  const store::TileBounds b = store::BoundsOf(level0);
+  const int64_t span = std::max(b.row1 - b.row0, b.col1 - b.col0);
+  int levels = 0;
+  while ((int64_t{1} << levels) < span && levels < max_levels) ++levels;
+  return levels;
+}
+
+void TileStore::Impl::RememberOverview(int level, const TileIndex& tile, const TileImage& image) {
+  const auto key = std::make_pair(level, tile);
+  if (!overview_cache.count(key)) overview_lru.push_back(key);
+  overview_cache[key] = image;
+  while (overview_cache.size() > options.max_cached_tiles) {
+    overview_cache.erase(overview_lru.front());
+    overview_lru.pop_front();
+  }
+}
+
+TileImage TileStore::Impl::OverviewTile(int level, const TileIndex& tile) {
+  auto it = overview_cache.find({level, tile});
+  if (it != overview_cache.end()) return it->second;
+  // A file on disk always holds that tile's last complete write, published or about to be.
+  const fs::path path = PathOf(level, tile);
+  if (fs::exists(path)) return store::ReadTile(path, options.tile_size, type);
+  return store::EmptyTile(options.tile_size, type);
+}
+
+std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
+    int level, const std::map<TileIndex, TileImage>& children, int64_t* bytes, int64_t* tiles) {
+  // Group changed children by parent; a parent on disk already holds its other quadrants.
+  std::map<TileIndex, std::vector<const std::pair<const TileIndex, TileImage>*>> by_parent;
+  for (const auto& child : children) {
+    by_parent[{FloorDiv(child.first.first, 2), FloorDiv(child.first.second, 2)}].push_back(&child);
+  }
+  const int half = options.tile_size / 2;
+  std::map<TileIndex, TileImage> written;
+  for (const auto& [parent, kids] : by_parent) {
+    TileImage image = OverviewTile(level, parent);
+    for (const auto* kid : kids) {
+      const TileImage small = store::HalveTile(kid->second);
+      const int qy = static_cast<int>(kid->first.first - 2 * parent.first);
+      const int qx = static_cast<int>(kid->first.second - 2 * parent.second);
+      const cv::Rect quadrant(qx * half, qy * half, half, half);
+      small.data.copyTo(image.data(quadrant));
+      small.alpha.copyTo(image.alpha(quadrant));
+    }
+    double gt[6];
+    store::TileGeoTransform(georef.gsd_m, options.tile_size, level, parent, gt);
+    fs::create_directories(root / ("tiles/" + std::to_string(level)));
+    *bytes += store::WriteTileAtomic(PathOf(level, parent), image, gt, WriteSettings());
+    ++*tiles;
+    RememberOverview(level, parent, image);
+    written.emplace(parent, std::move(image));
+  }
+  return written;
+}
+
+void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
+  store::Manifest& m = *next;
+  const int levels = static_cast<int>(m.levels.size()) - 1;
+  m.generation = generation;
+  m.published_utc = store::UtcNow();
+  m.overview_vrts.clear();
+  const store::TileBounds bounds = store::BoundsOf(m.levels[0]);
+  for (int level = 1; level <= levels; ++level) {
+    const std::string relative =
+        "tiles/" + std::to_string(level) + "/overview_g" + std::to_string(generation) + ".vrt";
+    store::WriteFileAtomic(root / relative, store::BuildLevelVrt(m, level, bounds, {}),
+                           options.durable);
+    m.overview_vrts.push_back(relative);
+  }
+  store::WriteFileAtomic(root / "mosaic.vrt", store::BuildLevelVrt(m, 0, bounds, m.overview_vrts),
+                         options.durable);
+  store::WriteFileAtomic(root / "manifest.json", store::ManifestToJson(m), options.durable);
+}
+
+void TileStore::Impl::CleanStaleFiles(int64_t keep_generation_from) {
+  // Overview VRTs of old generations: a reader parses them when it opens mosaic.vrt, so the
+  // last few generations are kept for readers that are opening right now.
+  std::error_code error;
+  for (const auto& dir : fs::directory_iterator(root / "tiles", error)) {
+    for (const auto& entry : fs::directory_iterator(dir.path(), error)) {
+      const std::string name = entry.path().filename().string();
+      if (name.rfind("overview_g", 0) == 0) {
+        const int64_t generation = std::atoll(name.c_str() + 10);
+        if (generation < keep_generation_from) fs::remove(entry.path(), error);
+      }
+    }
+  }
+}
+
+void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock) {
+  // 1. Snapshot what changed, under the lock (memory copies only).
+  std::map<TileIndex, TileImage> level0;
+  for (auto& [index, tile] : cache) {
+    if (!tile.dirty) continue;
+    level0[index] = {tile.image.data.clone(), tile.image.alpha.clone()};
+    tile.dirty = false;
+    tile.writing = true;
+    --dirty_count;
+  }
+  std::vector<FrameRecord> frames_to_write;
+  frames_to_write.swap(frames_changed);
+  int64_t frame_count = static_cast<int64_t>(frames.size());
+  double time_min = 0.0, time_max = 0.0;
+  if (!frames.empty()) {
+    time_min = time_max = frames.begin()->second.time_s;
+    for (const auto& [index, record] : frames) {
+      time_min = std::min(time_min, record.time_s);
+      time_max = std::max(time_max, record.time_s);
+    }
+  }
+  const std::string application = application_json;
+  application_dirty = false;
+  lock.unlock();
+
+  const Clock::time_point start = Clock::now();
+  int64_t bytes = 0, tiles_written = 0;
+  std::string error;
+  std::vector<TileIndex> snapshot;
+  for (const auto& [index, image] : level0) snapshot.push_back(index);
+  try {
+    // 2. Level-0 tiles, each to a temporary name then renamed.
+    double gt[6];
+    for (const auto& [index, image] : level0) {
+      store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
+      bytes += store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+      ++tiles_written;
+      lock.lock();
+      level0_on_disk.insert(index);
+      auto it = cache.find(index);
+      if (it != cache.end()) it->second.writing = false;
+      changed.notify_all();
+      lock.unlock();
+    }
+    // Tiles written by a failed publish still owe their overviews.
+    for (const TileIndex& index : propagate_pending) {
+      if (!level0.count(index)) {
+        level0[index] = store::ReadTile(PathOf(0, index), options.tile_size, type);
+      }
+    }
+    // Work on a copy: the published manifest changes only once the index is written.
+    store::Manifest next = manifest;
+    for (const auto& [index, image] : level0) next.levels[0].insert(index);
+    // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
+    const int old_levels = static_cast<int>(next.levels.size()) - 1;
+    const int levels = LevelsFor(next.levels[0]);
+    next.levels.resize(levels + 1);
+    std::map<TileIndex, TileImage> children = std::move(level0);
+    for (int level = 1; level <= levels; ++level) {
+      if (level > old_levels) {
+        for (const TileIndex& tile : next.levels[level - 1]) {
+          if (!children.count(tile)) {
+            children[tile] = level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type)
+                                        : OverviewTile(level - 1, tile);
+          }
+        }
+      }
+      std::map<TileIndex, TileImage> parents =
+          UpdateOverviewLevel(level, children, &bytes, &tiles_written);
+      for (const auto& [index, image] : parents) next.levels[level].insert(index);
+      children = std::move(parents);
+    }
+    // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
+    std::vector<const TileImage*> top;
+    for (const auto& [index, image] : children) top.push_back(&image);
+    double lo = 0, hi = 0;
+    bool range_changed = false;
+    if (store::CoveredPercentiles(top, &lo, &hi)) {
+      if (next.display_hi > next.display_lo) {
+        lo = std::min(lo, next.display_lo);
+        hi = std::max(hi, next.display_hi);
+      }
+      const double span = std::max(hi - lo, 1e-6);
+      range_changed = std::abs(lo - next.display_lo) > 0.02 * span ||
+                      std::abs(hi - next.display_hi) > 0.02 * span;
+      next.display_lo = lo;
+      next.display_hi = hi;
+    }
+    // 4. Frames, then the index: overview VRTs, mosaic.vrt, manifest.json.
+    if (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg")) {
+      store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
+                             options.durable);
+    }
+    next.frame_count = frame_count;
+    next.time_min_s = time_min;
+    next.time_max_s = time_max;
+    next.application_json = application;
+    WriteIndex(&next, generation);
+    if (range_changed) WriteQlr(next);
+    manifest = std::move(next);
+    propagate_pending.clear();
+    CleanStaleFiles(generation - 3);
+  } catch (const Error& e) {
+    error = e.what();
+  } catch (const std::exception& e) {
+    error = std::string("unexpected failure while publishing: ") + e.what();
+  }
+  if (!error.empty()) propagate_pending.insert(snapshot.begin(), snapshot.end());
+  const double busy_ms = MsSince(start);
+
+  lock.lock();
+  stats.writer_busy_ms += busy_ms;
+  stats.tiles_written += tiles_written;
+  stats.bytes_written += bytes;
+  if (error.empty()) {
+    published_generation = generation;
+    ++stats.publishes;
+    auto it = request_time_of.find(generation);
+    if (it != request_time_of.end()) {
+      publish_latencies_ms.push_back(MsSince(it->second));
+      request_time_of.erase(request_time_of.begin(), std::next(it));
+    }
+  } else {
+    failed_generation = generation;
+    last_error = error;
+    // What was not written stays dirty for the next attempt.
+    for (auto& [index, tile] : cache) {
+      if (tile.writing) {
+        tile.writing = false;
+        if (!tile.dirty) {
+          tile.dirty = true;
+          ++dirty_count;
+        }
+      }
+    }
+    for (auto& record : frames_to_write) frames_changed.push_back(record);
+    application_dirty = true;
+  }
+  EvictLocked();
+  changed.notify_all();
+}
+
+void TileStore::Impl::WriterLoop() {
+  std::unique_lock<std::mutex> lock(mutex);
+  for (;;) {
+    changed.wait(lock, [&] { return stop || requested_generation > started_generation; });
+    if (requested_generation > started_generation) {
+      started_generation = requested_generation;
+      PublishOnce(started_generation, lock);
+      continue;
+    }
+    if (stop) return;
+  }
+}
+
+TileStore::TileStore(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+
+TileStore::~TileStore() {
+  try {
+    Close();
+  } catch (const std::exception&) {
+    // Close() reports; a destructor must not throw. What was published stays valid.
+  }
+}
+
+std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& options,
+                                           const StoreGeoreference& georef) {
+  std::string problem;
+  if (!options.IsValid(&problem)) {
+    throw InputError({options.path, 0, 0, "options"}, problem, "fix the option named");
+  }
+  if (!(georef.gsd_m > 0.0) || !std::isfinite(georef.gsd_m) || georef.crs_wkt.empty()) {
+    throw InputError({options.path, 0, 0, "georeference"},
+                     "the georeference needs a positive gsd_m and the mosaic CRS WKT",
+                     "pass LocalFrame::CrsWkt() and the mosaic GSD");
+  }
+  GDALAllRegister();
+  auto impl = std::make_unique<Impl>();
+  impl->options = options;
+  impl->georef = georef;
+  impl->type = options.pixel_type;
+  impl->root = fs::path(options.path);
+  impl->max_levels = MaxLevelsFor(options.tile_size);
+  const fs::path manifest_path = impl->root / "manifest.json";
+  std::error_code error;
+  const bool exists = fs::exists(impl->root, error);
+  const bool is_store = fs::exists(manifest_path, error);
+  const bool empty_dir = exists && fs::is_directory(impl->root, error) &&
+                         fs::directory_iterator(impl->root, error) == fs::directory_iterator();
+
+  using Mode = TileStoreOptions::Mode;
+  if (options.mode == Mode::kCreate && exists && !empty_dir) {
+    throw InputError(
+        {options.path, 0, 0, ""},
+        is_store ? "a store already exists here" : "the path exists and is not an empty folder",
+        is_store ? "pass --resume to continue it or --overwrite to replace it"
+                 : "choose a new path");
+  }
+  if (options.mode == Mode::kOverwrite && exists && !empty_dir) {
+    if (!is_store) {
+      throw InputError({options.path, 0, 0, ""},
+                       "the path exists and is not an irmosaic store; refusing "
+                       "to delete it",
+                       "choose a new path, or remove it yourself");
+    }
+    fs::remove_all(impl->root, error);
+    if (error) {
+      throw OutputError("cannot remove the old store " + options.path + ": " + error.message() +
+                        ". Fix: check the folder's permissions");
+    }
+  }
+  Impl& s = *impl;
+  if (options.mode == Mode::kResume) {
+    if (!is_store) {
+      throw InputError({options.path, 0, 0, ""}, "there is no store to resume here",
+                       "run without --resume to create it");
+    }
+    s.manifest = store::ReadManifest(manifest_path);
+    const StoreGeoreference& old = s.manifest.georef;
+    if (std::abs(old.origin_lat_deg - georef.origin_lat_deg) > 1e-9 ||
+        std::abs(old.origin_lon_deg - georef.origin_lon_deg) > 1e-9 ||
+        std::abs(old.gsd_m - georef.gsd_m) > 1e-12 || s.manifest.tile_size != options.tile_size) {
+      throw InputError({manifest_path.string(), 0, 0, ""},
+                       "the store's origin, GSD or tile size differ from this run's",
+                       "resume with the settings of the interrupted run, or use --overwrite");
+    }
+    s.type = s.manifest.type;
+    s.created_utc = s.manifest.created_utc;
+    s.level0_on_disk = s.manifest.levels.empty() ? TileSet{} : s.manifest.levels[0];
+    s.application_json = s.manifest.application_json;
+    s.published_generation = s.requested_generation = s.started_generation = s.manifest.generation;
+    for (const FrameRecord& record : store::ReadFramesGpkg(s.root / "frames.gpkg")) {
+      s.frames[record.index] = record;
+    }
+    // Temporaries of an interrupted publish are garbage: the manifest never named them.
+    for (const auto& entry : fs::recursive_directory_iterator(s.root, error)) {
+      if (store::IsTemporaryName(entry.path().filename().string())) {
+        std::error_code ignored;
+        fs::remove(entry.path(), ignored);
+      }
+    }
+  } else {
+    fs::create_directories(s.root / "tiles" / "0", error);
+    if (error) {
+      throw OutputError("cannot create the store folder " + options.path + ": " + error.message() +
+                        ". Fix: choose a writable folder");
+    }
+    s.created_utc = store::UtcNow();
+    s.manifest.georef = georef;
+    s.manifest.tile_size = options.tile_size;
+    s.manifest.type = s.type;
+    s.manifest.compression = options.compression;
+    s.manifest.created_utc = s.created_utc;
+    s.manifest.levels.resize(1);
+    // Generation 0: an empty but valid store, so readers and the .qlr work from the start.
+    store::WriteFramesGpkg(s.root / "frames.gpkg", georef.crs_wkt, {}, options.durable);
+    s.WriteIndex(&s.manifest, 0);
+  }
+  s.manifest.compression = options.compression;
+  if (!fs::exists(s.root / (options.layer_name + ".qlr"))) s.WriteQlr(s.manifest);
+  s.writer = std::thread([&s] { s.WriterLoop(); });
+  return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
+}
+
+std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
+  GDALAllRegister();
+  auto impl = std::make_unique<Impl>();
+  impl->root = fs::path(path);
+  impl->manifest = store::ReadManifest(impl->root / "manifest.json");
+  impl->read_only = true;
+  impl->georef = impl->manifest.georef;
+  impl->type = impl->manifest.type;
+  impl->options.path = path;
+  impl->options.tile_size = impl->manifest.tile_size;
+  impl->options.pixel_type = impl->type;
+  impl->options.compression = impl->manifest.compression;
+  impl->level0_on_disk = impl->manifest.levels.empty() ? TileSet{} : impl->manifest.levels[0];
+  impl->published_generation = impl->manifest.generation;
+  impl->application_json = impl->manifest.application_json;
+  for (const FrameRecord& record : store::ReadFramesGpkg(impl->root / "frames.gpkg")) {
+    impl->frames[record.index] = record;
+  }
+  return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
+}
+
+void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) {
+  Impl& s = *impl_;
+  if (s.read_only || s.stop) {
+    throw Error("TileStore::Paint on a store that is read-only or closed (" + s.options.path + ")");
+  }
+  if (image.empty()) return;
+  if (image.channels() != 1 || image.depth() != CvDepthOf(s.type) || weight.type() != CV_32F ||
+      weight.size() != image.size()) {
+    throw InputError({s.options.path, 0, 0, "Paint"},
+                     "patch must be one channel of the store's type (" +
+                         std::string(GdalTypeNameOf(s.type)) +
+                         ") with a CV_32F weight of the same size",
+                     "convert the patch to the store's pixel type");
+  }
+  const Clock::time_point start = Clock::now();
+  const int t = s.options.tile_size;
+  const int64_t row0 = TileIndexOf(origin_px.y, t),
+                row1 = TileIndexOf(origin_px.y + image.rows - 1, t);
+  const int64_t col0 = TileIndexOf(origin_px.x, t),
+                col1 = TileIndexOf(origin_px.x + image.cols - 1, t);
+  std::unique_lock<std::mutex> lock(s.mutex);
+  for (int64_t row = row0; row <= row1; ++row) {
+    for (int64_t col = col0; col <= col1; ++col) {
+      // The part of the patch inside this tile, in patch and tile pixels.
+      const int64_t tx = col * t, ty = row * t;
+      const int64_t x0 = std::max<int64_t>(tx, origin_px.x),
+                    y0 = std::max<int64_t>(ty, origin_px.y);
+      const int64_t x1 = std::min<int64_t>(tx + t, origin_px.x + image.cols);
+      const int64_t y1 = std::min<int64_t>(ty + t, origin_px.y + image.rows);
+      const cv::Rect patch_roi(static_cast<int>(x0 - origin_px.x),
+                               static_cast<int>(y0 - origin_px.y), static_cast<int>(x1 - x0),
+                               static_cast<int>(y1 - y0));
+      if (cv::countNonZero(weight(patch_roi) > 0.0f) == 0) continue;
+      const cv::Rect tile_roi(static_cast<int>(x0 - tx), static_cast<int>(y0 - ty), patch_roi.width,
+                              patch_roi.height);
+      Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
+      switch (s.type) {
+        case PixelType::kByte:
+          BlendInto<uint8_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
+                             tile_roi);
+          break;
+        case PixelType::kUInt16:
+          BlendInto<uint16_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
+                              tile_roi);
+          break;
+        case PixelType::kFloat32:
+          BlendInto<float>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha, tile_roi);
+          break;
+      }
+      if (!tile.dirty) {
+        tile.dirty = true;
+        ++s.dirty_count;
+      }
+    }
+  }
+  s.EvictLocked();
+  // Back-pressure: memory stays bounded when painting outruns the writer.
+  if (s.cache.size() > 2 * s.options.max_cached_tiles) {
+    if (s.requested_generation <= s.started_generation) {
+      s.request_time_of[++s.requested_generation] = Clock::now();
+      s.changed.notify_all();
+    }
+    s.changed.wait(lock, [&] {
+      return s.cache.size() <= 2 * s.options.max_cached_tiles ||
+             s.failed_generation >= s.requested_generation || s.stop;
+    });
+  }
+  s.stats.paint_ms_total += MsSince(start);
+}
+
+void TileStore::PutFrameRecord(const FrameRecord& record) {
+  Impl& s = *impl_;
+  std::lock_guard<std::mutex> lock(s.mutex);
+  s.frames[record.index] = record;
+  s.frames_changed.push_back(record);
+}
+
+std::vector<FrameRecord> TileStore::FrameRecords() const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  std::vector<FrameRecord> records;
+  for (const auto& [index, record] : impl_->frames) records.push_back(record);
+  return records;
+}
+
+void TileStore::SetApplicationState(const std::string& json_text) {
+  if (!json_text.empty() && !nlohmann::json::accept(json_text)) {
+    throw InputError({impl_->options.path, 0, 0, "application state"}, "not valid JSON",
+                     "pass a JSON document");
+  }
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  impl_->application_json = json_text;
+  impl_->application_dirty = true;
+}
+
+std::string TileStore::application_state() const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  return impl_->application_json;
+}
+
+int64_t TileStore::RequestPublish() {
+  Impl& s = *impl_;
+  std::lock_guard<std::mutex> lock(s.mutex);
+  if (s.read_only) return s.published_generation;
+  // A request not yet started by the writer already covers everything painted so far.
+  if (s.requested_generation > s.started_generation) return s.requested_generation;
+  // Nothing new since the writer's last snapshot: that generation already holds it all.
+  const bool changed = s.dirty_count > 0 || !s.frames_changed.empty() || s.application_dirty ||
+                       s.failed_generation >= s.started_generation;
+  if (!changed) return s.started_generation;
+  ++s.requested_generation;
+  s.request_time_of[s.requested_generation] = Clock::now();
+  s.changed.notify_all();
+  return s.requested_generation;
+}
+
+void TileStore::WaitPublished(int64_t generation) {
+  Impl& s = *impl_;
+  std::unique_lock<std::mutex> lock(s.mutex);
+  s.changed.wait(lock, [&] {
+    return s.published_generation >= generation || s.failed_generation >= generation ||
+           (s.stop && !s.writer.joinable());
+  });
+  if (s.published_generation < generation) {
+    throw OutputError(s.last_error.empty() ? "store " + s.options.path + " is closed"
+                                           : s.last_error);
+  }
+}
+
+int64_t TileStore::published_generation() const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  return impl_->published_generation;
+}
+
+void TileStore::ReadWindow(const cv::Rect& mosaic_px, cv::Mat* image, cv::Mat* coverage) const {
+  const Impl& s = *impl_;
+  const int t = s.options.tile_size;
+  *image = cv::Mat::zeros(mosaic_px.size(), CvDepthOf(s.type));
+  *coverage = cv::Mat::zeros(mosaic_px.size(), CV_8U);
+  if (mosaic_px.empty()) return;
+  for (int64_t row = TileIndexOf(mosaic_px.y, t); row <= TileIndexOf(mosaic_px.br().y - 1, t);
+       ++row) {
+    for (int64_t col = TileIndexOf(mosaic_px.x, t); col <= TileIndexOf(mosaic_px.br().x - 1, t);
+         ++col) {
+      TileImage tile;
+      {
+        std::lock_guard<std::mutex> lock(s.mutex);
+        auto it = s.cache.find({row, col});
+        if (it != s.cache.end()) {
+          tile = {it->second.image.data.clone(), it->second.image.alpha.clone()};
+        } else if (!s.level0_on_disk.count({row, col})) {
+          continue;
+        }
+      }
+      if (tile.empty()) tile = store::ReadTile(s.PathOf(0, {row, col}), t, s.type);
+      const cv::Rect tile_rect(static_cast<int>(col * t), static_cast<int>(row * t), t, t);
+      const cv::Rect overlap = tile_rect & mosaic_px;
+      const cv::Rect in_tile = overlap - tile_rect.tl();
+      const cv::Rect in_window = overlap - mosaic_px.tl();
+      tile.data(in_tile).copyTo((*image)(in_window));
+      tile.alpha(in_tile).copyTo((*coverage)(in_window));
+    }
+  }
+}
+
+void TileStore::Close() {
+  Impl& s = *impl_;
+  if (s.read_only || !s.writer.joinable()) return;
+  std::string error;
+  try {
+    WaitPublished(RequestPublish());
+  } catch (const Error& e) {
+    error = e.what();
+  }
+  {
+    std::lock_guard<std::mutex> lock(s.mutex);
+    s.stop = true;
+    s.changed.notify_all();
+  }
+  s.writer.join();
+  if (!error.empty()) throw OutputError(error);
+}
+
+TileStore::Stats TileStore::stats() const {
+  const Impl& s = *impl_;
+  std::lock_guard<std::mutex> lock(s.mutex);
+  Stats out = s.stats;
+  std::vector<double> latencies = s.publish_latencies_ms;
+  if (!latencies.empty()) {
+    std::sort(latencies.begin(), latencies.end());
+    const auto at = [&](double q) {
+      return latencies[std::min(latencies.size() - 1,
+                                static_cast<size_t>(std::ceil(q * latencies.size())) - 1)];
+    };
+    out.publish_p50_ms = at(0.5);
+    out.publish_p99_ms = at(0.99);
+    out.publish_max_ms = latencies.back();
+  }
+  out.cached_tiles = s.cache.size();
+  out.tiles_on_disk = s.level0_on_disk.size();
+  return out;
+}
+
+cv::Rect TileStore::level0_bounds_px() const {
+  const Impl& s = *impl_;
+  std::lock_guard<std::mutex> lock(s.mutex);
+  TileSet all = s.level0_on_disk;
+  for (const auto& [index, tile] : s.cache) all.insert(index);
+  if (all.empty()) return {};
+  const store::TileBounds b = store::BoundsOf(all);
+  const int t = s.options.tile_size;
+  return {static_cast<int>(b.col0 * t), static_cast<int>(b.row0 * t),
+          static_cast<int>((b.col1 - b.col0) * t), static_cast<int>((b.row1 - b.row0) * t)};
+}
+
+const TileStoreOptions& TileStore::options() const { return impl_->options; }
+const StoreGeoreference& TileStore::georeference() const { return impl_->georef; }
+PixelType TileStore::pixel_type() const { return impl_->type; }
+
+}  // namespace irmosaic

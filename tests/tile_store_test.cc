@@ -1,0 +1,549 @@
+// TileStore: what GDAL (a real client) reads from the live store, under concurrency and crashes.
+#include "irmosaic/tile_store.h"
+
+#include <gdal.h>
+#include <gdal_priv.h>
+#include <gtest/gtest.h>
+#include <ogr_spatialref.h>
+#include <ogrsf_frmts.h>
+#include <signal.h>
+#include <sys/resource.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <GeographicLib/Geodesic.hpp>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
+#include <random>
+#include <thread>
+
+#include "irmosaic/error.h"
+#include "irmosaic/local_frame.h"
+
+namespace irmosaic {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr double kLat0 = 47.2, kLon0 = 8.5, kGsd = 0.5;
+
+fs::path FreshDir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() /
+                       ("irmosaic_store_test_" + std::to_string(::getpid()) + "_" + name);
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir;
+}
+
+StoreGeoreference Georef() {
+  const LocalFrame frame(kLat0, kLon0);
+  return {kLat0, kLon0, kGsd, frame.CrsWkt()};
+}
+
+TileStoreOptions Options(const fs::path& path, int tile_size = 256) {
+  TileStoreOptions options;
+  options.path = path.string();
+  options.tile_size = tile_size;
+  return options;
+}
+
+void PaintSquare(TileStore* store, cv::Point top_left, int size, double value,
+                 float weight = 1.0f) {
+  cv::Mat image(size, size, CvDepthOf(store->pixel_type()), cv::Scalar(value));
+  cv::Mat w(size, size, CV_32F, cv::Scalar(weight));
+  store->Paint(image, w, top_left);
+}
+
+// Counts GDAL failures of this thread while alive.
+struct GdalErrorCount {
+  GdalErrorCount() { CPLPushErrorHandlerEx(&Handler, this); }
+  ~GdalErrorCount() { CPLPopErrorHandler(); }
+  static void CPL_STDCALL Handler(CPLErr level, CPLErrorNum, const char* message) {
+    auto* self = static_cast<GdalErrorCount*>(CPLGetErrorHandlerUserData());
+    if (level >= CE_Failure) {
+      ++self->count;
+      self->last = message ? message : "";
+    }
+  }
+  int count = 0;
+  std::string last;
+};
+
+struct Raster {
+  cv::Mat data, alpha;
+  double gt[6];
+  int overviews = 0;
+  int64_t generation = -1;
+};
+
+// Reads mosaic.vrt (or any 2-band raster) whole through GDAL, optionally at an overview.
+Raster ReadThroughGdal(const fs::path& path, int overview = 0) {
+  Raster r;
+  GDALAllRegister();  // The store may have been written by another process only.
+  GDALDatasetH ds = GDALOpen(path.c_str(), GA_ReadOnly);
+  if (ds == nullptr) return r;
+  GDALGetGeoTransform(ds, r.gt);
+  const char* gen = GDALGetMetadataItem(ds, "IRMOSAIC_GENERATION", nullptr);
+  if (gen) r.generation = std::atoll(gen);
+  GDALRasterBandH band1 = GDALGetRasterBand(ds, 1), band2 = GDALGetRasterBand(ds, 2);
+  r.overviews = GDALGetOverviewCount(band1);
+  if (overview > 0) {
+    if (overview > r.overviews) {
+      GDALClose(ds);
+      return r;
+    }
+    band1 = GDALGetOverview(band1, overview - 1);
+    band2 = GDALGetOverview(band2, overview - 1);
+  }
+  const int w = GDALGetRasterBandXSize(band1), h = GDALGetRasterBandYSize(band1);
+  r.data.create(h, w, CV_32F);
+  r.alpha.create(h, w, CV_32F);
+  if (GDALRasterIO(band1, GF_Read, 0, 0, w, h, r.data.ptr(), w, h, GDT_Float32, 0, 0) != CE_None ||
+      GDALRasterIO(band2, GF_Read, 0, 0, w, h, r.alpha.ptr(), w, h, GDT_Float32, 0, 0) != CE_None) {
+    r.data.release();
+  }
+  GDALClose(ds);
+  return r;
+}
+
+// Metres between plane points a and b measured on the ellipsoid through PROJ (independent of the
+// store's own geotransform arithmetic).
+double GroundDistance(const PlaneToGeographic& to_geo, const Eigen::Vector2d& a,
+                      const Eigen::Vector2d& b) {
+  const Eigen::Vector2d la = to_geo.LatLonFromPlane(a), lb = to_geo.LatLonFromPlane(b);
+  double s12 = 0;
+  GeographicLib::Geodesic::WGS84().Inverse(la.x(), la.y(), lb.x(), lb.y(), s12);
+  return s12;
+}
+
+TEST(TileStoreTest, GdalReadsPaintedMarkersAtTheirGroundPositionWithExactValues) {
+  const fs::path dir = FreshDir("markers") / "flight.irmosaic";
+  auto store = TileStore::Open(Options(dir), Georef());
+  // Markers straddling tile borders and negative tile indices, with distinct values.
+  struct Marker {
+    cv::Point top_left;
+    int value;
+  };
+  const std::vector<Marker> markers = {
+      {{-300, -40}, 1111}, {{250, 250}, 2222}, {{600, -500}, 3333}, {{-20, 700}, 4444}};
+  for (const Marker& m : markers) PaintSquare(store.get(), m.top_left, 16, m.value);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(store->published_generation(), 1);
+
+  GdalErrorCount errors;
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  ASSERT_FALSE(vrt.data.empty());
+  EXPECT_EQ(vrt.generation, 1);
+  // CRS: the mosaic plane's, as GDAL reports it.
+  GDALDatasetH ds = GDALOpen((dir / "mosaic.vrt").c_str(), GA_ReadOnly);
+  OGRSpatialReference expected, actual;
+  expected.importFromWkt(Georef().crs_wkt.c_str());
+  actual.importFromWkt(GDALGetProjectionRef(ds));
+  EXPECT_TRUE(actual.IsSame(&expected));
+  GDALClose(ds);
+
+  const PlaneToGeographic to_geo{LocalFrame(kLat0, kLon0)};
+  const MosaicGrid grid{kGsd};
+  for (const Marker& m : markers) {
+    // Where GDAL says the marker is: centroid of pixels holding its value, through the
+    // geotransform.
+    cv::Mat hit = vrt.data == m.value;
+    const cv::Moments moments = cv::moments(hit, true);
+    ASSERT_EQ(moments.m00, 16 * 16) << "value " << m.value << " must round-trip exactly";
+    const double px = moments.m10 / moments.m00 + 0.5, py = moments.m01 / moments.m00 + 0.5;
+    const Eigen::Vector2d gdal_xy(vrt.gt[0] + px * vrt.gt[1], vrt.gt[3] + py * vrt.gt[5]);
+    // Where it was painted: the centre of the 16x16 block of mosaic pixels.
+    const Eigen::Vector2d truth = grid.PlaneFromPixel({m.top_left.x + 7.5, m.top_left.y + 7.5});
+    EXPECT_LT(GroundDistance(to_geo, gdal_xy, truth), kGsd) << "marker " << m.value;
+    // Coverage: alpha is the UInt16 maximum on the marker.
+    EXPECT_EQ(cv::countNonZero((vrt.alpha == 65535) & hit), 16 * 16);
+  }
+  // Unpainted pixels are transparent.
+  EXPECT_EQ(cv::countNonZero(vrt.alpha), static_cast<int>(markers.size()) * 16 * 16);
+  // Overviews: the extent spans 5 tiles, so levels exist, and level 1 shows each marker halved.
+  ASSERT_GE(vrt.overviews, 2);
+  const Raster level1 = ReadThroughGdal(dir / "mosaic.vrt", 1);
+  ASSERT_FALSE(level1.data.empty());
+  EXPECT_EQ(level1.data.cols, vrt.data.cols / 2);
+  for (const Marker& m : markers) {
+    EXPECT_EQ(cv::countNonZero(level1.data == m.value), 8 * 8) << "marker " << m.value;
+  }
+  EXPECT_EQ(errors.count, 0) << errors.last;
+
+  // The manifest lists what GDAL read.
+  std::ifstream in(dir / "manifest.json");
+  const nlohmann::json manifest = nlohmann::json::parse(in);
+  EXPECT_EQ(manifest["format"], "irmosaic-store");
+  EXPECT_EQ(manifest["generation"], 1);
+  EXPECT_EQ(manifest["data_type"], "UInt16");
+  EXPECT_EQ(manifest["levels"][0]["tiles"].size(), 7u);  // 2222 straddles four tiles.
+  store->Close();
+}
+
+TEST(TileStoreTest, BlendFollowsTheContractAndReadsBack) {
+  const fs::path dir = FreshDir("blend") / "s.irmosaic";
+  TileStoreOptions options = Options(dir);
+  options.pixel_type = PixelType::kFloat32;
+  auto store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {-10, -10}, 20, 100.0, 1.0f);
+  PaintSquare(store.get(), {0, 0}, 20, 200.0, 0.25f);  // Half over covered, half over empty.
+  cv::Mat image, coverage;
+  store->ReadWindow({-10, -10, 30, 30}, &image, &coverage);
+  EXPECT_FLOAT_EQ(image.at<float>(5, 5), 100.0f);                             // Only the first.
+  EXPECT_FLOAT_EQ(image.at<float>(15, 15), 0.25f * 200.0f + 0.75f * 100.0f);  // Blended.
+  EXPECT_FLOAT_EQ(image.at<float>(25, 25), 200.0f);  // Uncovered takes the patch.
+  EXPECT_EQ(coverage.at<uchar>(25, 5), 0);
+  EXPECT_EQ(cv::countNonZero(coverage), 20 * 20 + 20 * 20 - 10 * 10);
+  // Zero weight paints nothing.
+  PaintSquare(store.get(), {100, 100}, 8, 7.0, 0.0f);
+  store->ReadWindow({100, 100, 8, 8}, &image, &coverage);
+  EXPECT_EQ(cv::countNonZero(coverage), 0);
+  // A patch of the wrong type is refused with a reason.
+  EXPECT_THROW(store->Paint(cv::Mat(4, 4, CV_8U), cv::Mat(4, 4, CV_32F), {0, 0}), InputError);
+  store->Close();
+  // Float32 round-trips through GDAL exactly.
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  EXPECT_EQ(cv::countNonZero(vrt.data == 0.25f * 200.0f + 0.75f * 100.0f), 10 * 10);
+}
+
+TEST(TileStoreTest, ExistingStoreNeedsResumeOrOverwriteAndResumeContinues) {
+  const fs::path dir = FreshDir("resume") / "s.irmosaic";
+  {
+    auto store = TileStore::Open(Options(dir), Georef());
+    PaintSquare(store.get(), {0, 0}, 32, 500);
+    FrameRecord record;
+    record.index = 7;
+    record.time_s = 12.5;
+    record.footprint_m = {Eigen::Vector2d(0, 0), {10, 0}, {10, -10}, {0, -10}};
+    record.status = "registered";
+    store->PutFrameRecord(record);
+    store->SetApplicationState(R"({"last_frame": 7})");
+    store->Close();
+  }
+  try {
+    TileStore::Open(Options(dir), Georef());
+    FAIL() << "kCreate on an existing store must throw";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find(dir.string()), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("--resume"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("--overwrite"), std::string::npos) << e.what();
+  }
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  {
+    auto store = TileStore::Open(resume, Georef());
+    EXPECT_EQ(store->published_generation(), 1);
+    EXPECT_EQ(store->application_state(), R"({"last_frame":7})");
+    ASSERT_EQ(store->FrameRecords().size(), 1u);
+    EXPECT_EQ(store->FrameRecords()[0].index, 7);
+    EXPECT_DOUBLE_EQ(store->FrameRecords()[0].footprint_m[2].y(), -10.0);
+    PaintSquare(store.get(), {1000, 0}, 32, 600);
+    store->Close();
+    EXPECT_EQ(store->published_generation(), 2);
+  }
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  EXPECT_EQ(cv::countNonZero(vrt.data == 500), 32 * 32);
+  EXPECT_EQ(cv::countNonZero(vrt.data == 600), 32 * 32);
+  // Resume with another GSD is refused.
+  StoreGeoreference other = Georef();
+  other.gsd_m = 0.25;
+  EXPECT_THROW(TileStore::Open(resume, other), InputError);
+  // Overwrite refuses a folder that is not a store, and replaces a store.
+  const fs::path not_store = FreshDir("notstore");
+  std::ofstream(not_store / "precious.txt") << "data";
+  TileStoreOptions overwrite = Options(not_store);
+  overwrite.mode = TileStoreOptions::Mode::kOverwrite;
+  EXPECT_THROW(TileStore::Open(overwrite, Georef()), InputError);
+  EXPECT_TRUE(fs::exists(not_store / "precious.txt"));
+  overwrite.path = dir.string();
+  TileStore::Open(overwrite, Georef())->Close();
+  EXPECT_EQ(cv::countNonZero(ReadThroughGdal(dir / "mosaic.vrt").alpha), 0);
+}
+
+TEST(TileStoreTest, FramesGpkgHoldsFootprintsInTheMosaicCrs) {
+  const fs::path dir = FreshDir("frames") / "s.irmosaic";
+  auto store = TileStore::Open(Options(dir), Georef());
+  for (int i = 0; i < 30; ++i) {
+    FrameRecord r;
+    r.index = i;
+    r.time_s = 0.04 * i;
+    r.footprint_m = {Eigen::Vector2d(i, 0), {i + 50.0, 0}, {i + 50.0, -40}, {i, -40}};
+    r.pos_only = i % 3 == 0;
+    r.inliers = 100 + i;
+    r.residual_px = 0.3;
+    r.status = r.pos_only ? "pos_only" : "registered";
+    store->PutFrameRecord(r);
+  }
+  store->WaitPublished(store->RequestPublish());
+  FrameRecord replaced;
+  replaced.index = 4;
+  replaced.time_s = 0.16;
+  replaced.footprint_m = {Eigen::Vector2d(1, 1), {2, 1}, {2, 0}, {1, 0}};
+  replaced.status = "refined";
+  store->PutFrameRecord(replaced);
+  store->Close();
+
+  GDALDataset* ds = GDALDataset::Open((dir / "frames.gpkg").c_str(), GDAL_OF_VECTOR);
+  ASSERT_NE(ds, nullptr);
+  OGRLayer* layer = ds->GetLayerByName("frames");
+  ASSERT_NE(layer, nullptr);
+  EXPECT_EQ(layer->GetFeatureCount(), 30);
+  OGRSpatialReference expected;
+  expected.importFromWkt(Georef().crs_wkt.c_str());
+  EXPECT_TRUE(layer->GetSpatialRef()->IsSame(&expected));
+  layer->SetAttributeFilter("frame_index = 4");
+  OGRFeature* f = layer->GetNextFeature();
+  ASSERT_NE(f, nullptr);
+  EXPECT_STREQ(f->GetFieldAsString("status"), "refined");
+  OGREnvelope env;
+  f->GetGeometryRef()->getEnvelope(&env);
+  EXPECT_DOUBLE_EQ(env.MaxX, 2.0);
+  OGRFeature::DestroyFeature(f);
+  layer->SetAttributeFilter("pos_only = 1");
+  EXPECT_EQ(layer->GetFeatureCount(), 10);
+  GDALClose(ds);
+  std::ifstream in(dir / "manifest.json");
+  const nlohmann::json manifest = nlohmann::json::parse(in);
+  EXPECT_EQ(manifest["frames"]["count"], 30);
+  EXPECT_DOUBLE_EQ(manifest["frames"]["time_max_s"].get<double>(), 0.04 * 29);
+}
+
+TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
+  const fs::path dir = FreshDir("memory") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.max_cached_tiles = 8;
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  size_t most_cached = 0;
+  // A strip of 60 tiles, painted twice (second pass blends into reloaded tiles).
+  for (int pass = 0; pass < 2; ++pass) {
+    for (int i = 0; i < 60; ++i) {
+      PaintSquare(store.get(), {i * 64, 0}, 64, pass == 0 ? 100 : 200, pass == 0 ? 1.0f : 0.5f);
+      if (i % 10 == 9) store->RequestPublish();
+      most_cached = std::max(most_cached, store->stats().cached_tiles);
+    }
+    store->WaitPublished(store->RequestPublish());
+  }
+  EXPECT_LE(most_cached, 2 * options.max_cached_tiles);
+  EXPECT_GT(store->stats().tile_reloads, 0);
+  cv::Mat image, coverage;
+  store->ReadWindow({0, 0, 60 * 64, 64}, &image, &coverage);
+  EXPECT_EQ(cv::countNonZero(image == 150), 60 * 64 * 64);
+  store->Close();
+}
+
+TEST(TileStoreTest, BadPathsAreOutputErrorsNamingThePath) {
+  const fs::path dir = FreshDir("badpath");
+  std::ofstream(dir / "a_file") << "x";
+  try {
+    TileStore::Open(Options(dir / "a_file" / "s.irmosaic"), Georef());
+    FAIL();
+  } catch (const OutputError& e) {
+    EXPECT_NE(std::string(e.what()).find((dir / "a_file").string()), std::string::npos);
+  }
+  // A folder the user may not write to: drop root rights in a child process if we have them.
+  const fs::path locked = dir / "locked";
+  fs::create_directories(locked);
+  ::chmod(locked.c_str(), 0555);
+  const pid_t child = fork();
+  if (child == 0) {
+    if (::geteuid() == 0 && (::setgid(65534) != 0 || ::setuid(65534) != 0)) _exit(10);
+    try {
+      TileStore::Open(Options(locked / "s.irmosaic"), Georef());
+      _exit(1);
+    } catch (const OutputError& e) {
+      _exit(std::string(e.what()).find(locked.string()) != std::string::npos ? 0 : 2);
+    } catch (...) {
+      _exit(3);
+    }
+  }
+  int status = 0;
+  waitpid(child, &status, 0);
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0);
+}
+
+TEST(TileStoreTest, DiskFullIsAnOutputErrorAndThePublishedStateSurvives) {
+  const fs::path dir = FreshDir("diskfull") / "s.irmosaic";
+  int fds[2];
+  ASSERT_EQ(pipe(fds), 0);
+  const pid_t child = fork();
+  if (child == 0) {
+    close(fds[0]);
+    int code = 1;
+    std::string message;
+    try {
+      auto store = TileStore::Open(Options(dir), Georef());
+      PaintSquare(store.get(), {0, 0}, 512, 500);  // 2x2 tiles of a constant: tiny files.
+      store->WaitPublished(store->RequestPublish());
+      // From now on no file may exceed 32 KiB: a full disk for incompressible tiles.
+      signal(SIGXFSZ, SIG_IGN);
+      const rlimit limit{32 * 1024, 32 * 1024};
+      setrlimit(RLIMIT_FSIZE, &limit);
+      cv::Mat noise(512, 512, CV_16U);
+      cv::randu(noise, 0, 65535);
+      store->Paint(noise, cv::Mat(512, 512, CV_32F, cv::Scalar(1.0f)), {0, 0});
+      try {
+        store->WaitPublished(store->RequestPublish());
+      } catch (const OutputError& e) {
+        message = e.what();
+        code = 0;
+      }
+      try {
+        store->Close();
+        code = 4;  // Close must report the failure too.
+      } catch (const OutputError&) {
+      }
+    } catch (const std::exception& e) {
+      message = e.what();
+      code = 5;
+    }
+    if (write(fds[1], message.data(), message.size()) < 0) code = 6;
+    _exit(code);
+  }
+  close(fds[1]);
+  std::string message(4096, '\0');
+  message.resize(std::max<ssize_t>(0, read(fds[0], message.data(), message.size())));
+  close(fds[0]);
+  int status = 0;
+  waitpid(child, &status, 0);
+  ASSERT_TRUE(WIFEXITED(status));
+  ASSERT_EQ(WEXITSTATUS(status), 0) << message;
+  EXPECT_NE(message.find(dir.string()), std::string::npos) << message;
+  // The published state (generation 1, the constant) is intact and complete.
+  std::ifstream in(dir / "manifest.json");
+  EXPECT_EQ(nlohmann::json::parse(in)["generation"], 1);
+  GdalErrorCount errors;
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  EXPECT_EQ(cv::countNonZero(vrt.data == 500), 512 * 512);
+  EXPECT_EQ(errors.count, 0) << errors.last;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    EXPECT_EQ(entry.path().filename().string().find(".tmp"), std::string::npos)
+        << "temporary left behind: " << entry.path();
+  }
+}
+
+// Writer of the concurrency and crash tests: generation g paints every tile of a growing square
+// with the value 1000 + g, so a reader can tell a tile's generation and whether it is whole.
+void WriteGenerations(const fs::path& dir, TileStoreOptions::Mode mode, int generations) {
+  TileStoreOptions options = Options(dir, 128);
+  options.mode = mode;
+  auto store = TileStore::Open(options, Georef());
+  for (int i = 0; i < generations; ++i) {
+    const int64_t next = store->published_generation() + 1;
+    const int tiles = 2 + static_cast<int>(std::min<int64_t>(next / 3, 5));
+    PaintSquare(store.get(), {-128, -128}, 128 * tiles, 1000.0 + static_cast<double>(next));
+    store->WaitPublished(store->RequestPublish());
+  }
+  store->Close();
+}
+
+// Checks one read of the store by a reader process: every tile whole (one value), no value older
+// than the index's generation. Returns a problem, or "" if the read is consistent.
+std::string CheckStoreRead(const fs::path& dir, int tile_size) {
+  GdalErrorCount errors;
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  if (vrt.data.empty() || errors.count) return "GDAL failed: " + errors.last;
+  const Raster level1 = ReadThroughGdal(dir / "mosaic.vrt", 1);
+  if (errors.count) return "GDAL failed on the overview: " + errors.last;
+  for (int y = 0; y < vrt.data.rows; y += tile_size) {
+    for (int x = 0; x < vrt.data.cols; x += tile_size) {
+      const cv::Rect tile(x, y, tile_size, tile_size);
+      double lo = 0, hi = 0;
+      const cv::Mat covered = vrt.alpha(tile) > 0;
+      if (cv::countNonZero(covered) == 0) continue;
+      if (cv::countNonZero(covered) != tile_size * tile_size) return "partly covered tile";
+      cv::minMaxLoc(vrt.data(tile), &lo, &hi);
+      if (lo != hi) return "torn tile: values " + std::to_string(lo) + ".." + std::to_string(hi);
+      if (vrt.generation > 0 && lo < 1000.0 + static_cast<double>(vrt.generation)) {
+        return "tile older than the index generation";
+      }
+    }
+  }
+  (void)level1;
+  return "";
+}
+
+TEST(TileStoreTest, ConcurrentReaderProcessNeverSeesAnErrorOrATornTile) {
+  const fs::path dir = FreshDir("concurrent") / "s.irmosaic";
+  int fds[2];
+  ASSERT_EQ(pipe(fds), 0);
+  const pid_t reader = fork();
+  if (reader == 0) {
+    close(fds[0]);
+    GDALAllRegister();
+    int reads = 0, problems = 0;
+    std::string first_problem;
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+    while (!fs::exists(dir / "done") && std::chrono::steady_clock::now() < deadline) {
+      if (!fs::exists(dir / "manifest.json")) continue;
+      const std::string problem = CheckStoreRead(dir, 128);
+      ++reads;
+      if (!problem.empty() && problems++ == 0) first_problem = problem;
+    }
+    const std::string report =
+        std::to_string(reads) + " " + std::to_string(problems) + " " + first_problem;
+    if (write(fds[1], report.data(), report.size()) < 0) _exit(2);
+    _exit(0);
+  }
+  close(fds[1]);
+  WriteGenerations(dir, TileStoreOptions::Mode::kCreate, 30);
+  std::ofstream(dir / "done") << "";
+  std::string report(4096, '\0');
+  report.resize(std::max<ssize_t>(0, read(fds[0], report.data(), report.size())));
+  close(fds[0]);
+  int status = 0;
+  waitpid(reader, &status, 0);
+  int reads = 0, problems = -1;
+  std::istringstream(report) >> reads >> problems;
+  EXPECT_GE(reads, 10) << "the reader must have overlapped the writer: " << report;
+  EXPECT_EQ(problems, 0) << report;
+}
+
+TEST(TileStoreTest, KillNineMidPublishLeavesALoadableStoreThatResumes) {
+  const fs::path dir = FreshDir("crash") / "s.irmosaic";
+  std::mt19937 random(42);
+  int temporaries_seen = 0;
+  for (int round = 0; round < 6; ++round) {
+    const pid_t writer = fork();
+    if (writer == 0) {
+      try {
+        WriteGenerations(
+            dir, round == 0 ? TileStoreOptions::Mode::kCreate : TileStoreOptions::Mode::kResume,
+            100000);
+      } catch (...) {
+        _exit(1);
+      }
+      _exit(0);
+    }
+    // Let it run into its publishes, then kill it without warning.
+    std::this_thread::sleep_for(std::chrono::milliseconds(150 + random() % 400));
+    kill(writer, SIGKILL);
+    int status = 0;
+    waitpid(writer, &status, 0);
+    ASSERT_TRUE(WIFSIGNALED(status)) << "writer ended on its own (status " << status << ")";
+    for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+      temporaries_seen += entry.path().filename().string().find(".tmp") != std::string::npos;
+    }
+    ASSERT_TRUE(fs::exists(dir / "manifest.json")) << "round " << round;
+    EXPECT_EQ(CheckStoreRead(dir, 128), "") << "round " << round;
+  }
+  std::cout << "temporaries found after the kills (publishes interrupted): " << temporaries_seen
+            << "\n";
+  // Resume in this process and finish: the result holds everything, no temporaries left.
+  std::ifstream in(dir / "manifest.json");
+  const int64_t before = nlohmann::json::parse(in)["generation"];
+  WriteGenerations(dir, TileStoreOptions::Mode::kResume, 3);
+  std::ifstream again(dir / "manifest.json");
+  EXPECT_EQ(nlohmann::json::parse(again)["generation"], before + 3);
+  EXPECT_EQ(CheckStoreRead(dir, 128), "");
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    EXPECT_EQ(entry.path().filename().string().find(".tmp"), std::string::npos) << entry.path();
+  }
+}
+
+}  // namespace
+}  // namespace irmosaic
