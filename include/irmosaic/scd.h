@@ -24,6 +24,7 @@ namespace irmosaic {
 enum class ScdFlatHandling {
   kZero,     // Counts as overlap (denominator) with a zero orientation vector (numerator).
   kMaskOut,  // Excluded from numerator and denominator, as if outside the mask.
+  kSoft,     // Like kZero, but every pixel's unit vector is weighted by m^2 / (m^2 + floor^2).
 };
 
 // How the integer peak is refined to sub-pixel.
@@ -56,7 +57,16 @@ struct ScdOptions {
   double min_peak_ratio = 1.15;
   double peak_exclusion_px = 4.0;
   ScdSubpixel subpixel = ScdSubpixel::kParabola;
+  // After the 3-point fit on integer offsets, fit again on offsets +-subpixel_step_px around
+  // it, evaluated on the base gradients resampled (cubic) at those sub-pixel shifts: removes
+  // most of the fit's bias on a peak that is not a parabola. 0 disables (5 evaluations fewer).
+  double subpixel_step_px = 0.4;
   ScdPeakCriterion peak_criterion = ScdPeakCriterion::kSignificance;
+  // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
+  // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
+  // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
+  int pyramid_factor = 4;
+  double coarse_gradient_sigma_px = 1.0;
   // Search radius above this is refused (kBadInput) to bound time and memory.
   double max_search_radius_px = 1024.0;
 
@@ -88,10 +98,11 @@ class IRMOSAIC_EXPORT ScdMatcher {
   explicit ScdMatcher(ScdOptions options = {});
 
   // base/templ: CV_8U, CV_16U or CV_32F single channel; masks CV_8U (nonzero = valid) or empty
-  // (= all valid), same size as their image. Searches integer offsets within search_radius_px
-  // (Chebyshev: a square window) of predicted_offset, then refines the peak to sub-pixel.
-  // Valid pixels are those of the mask eroded by the pre-blur support (about 3 sigma), so that
-  // mask edges create no gradients; overlap figures count these pixels.
+  // (= all valid), same size as their image; non-finite float pixels count as invalid. Searches
+  // integer offsets within search_radius_px (Chebyshev: a square window) of predicted_offset,
+  // then refines the peak to sub-pixel. Valid pixels are those of the mask eroded by the
+  // pre-blur support (about 3 sigma), so that mask edges create no gradients; the search's
+  // overlap test counts these, the reported overlap_px counts the masks as given.
   ScdResult Match(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
                   const cv::Mat& templ_mask, const Eigen::Vector2d& predicted_offset,
                   double search_radius_px);
@@ -99,22 +110,60 @@ class IRMOSAIC_EXPORT ScdMatcher {
   const ScdOptions& options() const { return options_; }
 
  private:
-  // Unit orientation vectors (weighted), their weight for the denominator, valid mask.
+  using Status = ScdResult::Status;
+  // Pre-blur kernel and what follows from it.
+  struct Filter {
+    cv::Mat gauss;            // empty: no blur
+    double noise_gain = 1.0;  // std of a Sobel component of the blurred image per unit noise
+    int erode_px = 0;         // how far a mask edge reaches through blur and Sobel
+  };
+  // Orientation field of an image region: weighted unit gradient, denominator weight, validity.
   struct Field {
+    cv::Rect region;  // in its image's pixels
     cv::Mat cos_w, sin_w, den_w, valid;
     double valid_px = 0.0, oriented_px = 0.0;
+    float floor_sq = 0.0f;  // squared gradient noise floor used
   };
-  void ComputeField(const cv::Mat& image, const cv::Mat& mask, const cv::Rect& roi, Field* out);
+  // Peak of the FFT search, in the coordinates of the images searched.
+  struct Peak {
+    cv::Point offset;
+    Eigen::Vector2d subpixel = Eigen::Vector2d::Zero();
+    double ratio = 0.0;
+  };
+  // Buffers of one pyramid level: kept apart so that sizes do not alternate between calls.
+  struct Scratch {
+    cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, finite;
+    Field templ_field, base_field;
+  };
+  // *noise_std: the image noise std to use, or negative to estimate it (then written back).
+  void ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
+                    const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std);
+  // Masked SCD over the integer window [lo, hi] (inclusive) by FFT; kOk or a failure in result.
+  Status FftSearch(const Filter& filter, const cv::Mat& base, const cv::Mat& base_mask,
+                   const cv::Mat& templ, const cv::Mat& templ_mask, double templ_valid_px,
+                   cv::Point lo, cv::Point hi, Peak* peak, std::string* reason);
+  // Hill-climbs the full-resolution criterion from `start` within [lo, hi]; sub-pixel peak.
+  Status Refine(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
+                const cv::Mat& templ_mask, cv::Point start, cv::Point lo, cv::Point hi,
+                int max_steps, Peak* peak, std::string* reason);
+  // Criterion and SCD at one offset from the fine fields (false when nothing overlaps).
+  bool Evaluate(const Field& templ_field, const Field& base_field, cv::Point offset,
+                double* criterion, double* scd) const;
+  // Criterion at integer `offset` with the fine base gradients resampled (cubic) at a sub-pixel
+  // shift: they are band-limited by the pre-blur, and blur and Sobel commute with the shift.
+  double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift);
+  // Fills a field's vectors and weights from gradients; validity already in out->valid.
+  void Normalise(const cv::Mat& gx, const cv::Mat& gy, Field* out) const;
+  Status CheckFlat(const Field& f, const char* which, std::string* reason) const;
   void ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum);
   void InverseDft(const cv::Mat& spectrum, int output_rows, cv::Mat* out);
 
   ScdOptions options_;
-  cv::Mat gauss_kernel_;
-  double noise_gain_ = 1.0;  // std of a Sobel-of-blurred component per unit image noise std
-  int erode_px_ = 0;
+  Filter fine_, coarse_;
   // Scratch, reused between calls.
-  cv::Mat work_f32_, work_mask_, blurred_, gx_, gy_, mag_, tmp_;
-  Field templ_field_, base_field_;
+  Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
+  cv::Mat shifted_gx_, shifted_gy_;
+  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
   std::map<std::tuple<int, int, int, int>, cv::Ptr<cv::hal::DFT2D>> dft_plans_;
