@@ -41,7 +41,7 @@ enum class ScdPeakCriterion {
 };
 
 struct ScdOptions {
-  double gradient_sigma_px = 2.0;      // Gaussian pre-blur before gradients (tune by measurement)
+  double gradient_sigma_px = 3.0;      // Gaussian pre-blur before gradients (tune by measurement)
   double min_overlap_fraction = 0.05;  // of the template's valid pixels; smaller overlaps rejected
   // Gradient magnitudes under noise_floor_sigmas * (std of the gradient of pure noise) carry no
   // orientation. The image noise std is estimated per image (Immerkaer), so the floor follows
@@ -54,7 +54,7 @@ struct ScdOptions {
   double min_oriented_fraction = 0.01;
   // Peak over the best local maximum farther than peak_exclusion_px from it, both measured by
   // peak_criterion; below -> kAmbiguous.
-  double min_peak_ratio = 1.15;
+  double min_peak_ratio = 1.05;
   double peak_exclusion_px = 4.0;
   ScdSubpixel subpixel = ScdSubpixel::kParabola;
   // After the 3-point fit on integer offsets, fit again on offsets +-subpixel_step_px around
