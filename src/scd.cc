@@ -1,0 +1,763 @@
+// Masked SCD template matching in the frequency domain (PAPER_NOTES.md, "SCD").
+#include "irmosaic/scd.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+#include <vector>
+
+namespace irmosaic {
+namespace {
+
+using Status = ScdResult::Status;
+
+bool IsSupportedImage(const cv::Mat& image) {
+  const int depth = image.depth();
+  return image.dims == 2 && image.channels() == 1 &&
+         (depth == CV_8U || depth == CV_16U || depth == CV_32F);
+}
+
+// Empty, or CV_8U one channel of the image's size.
+bool IsSupportedMask(const cv::Mat& mask, const cv::Mat& image) {
+  return mask.empty() || (mask.type() == CV_8UC1 && mask.size() == image.size());
+}
+
+// 1D full convolution of two small kernels.
+std::vector<double> Convolve(const std::vector<double>& a, const std::vector<double>& b) {
+  std::vector<double> out(a.size() + b.size() - 1, 0.0);
+  for (size_t i = 0; i < a.size(); ++i) {
+    for (size_t j = 0; j < b.size(); ++j) out[i + j] += a[i] * b[j];
+  }
+  return out;
+}
+
+double SumOfSquares(const std::vector<double>& v) {
+  double s = 0.0;
+  for (double x : v) s += x * x;
+  return s;
+}
+
+// Immerkaer (1996) noise std of a float image: sqrt(pi/2)/6 * mean |I * N| over valid pixels
+// (N = [1 -2 1; -2 4 -2; 1 -2 1], blind to planes and linear ramps). Every other row is enough.
+double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
+  double sum = 0.0;
+  int64_t count = 0;
+  for (int y = 1; y + 1 < image_f32.rows; y += 2) {
+    const float* a = image_f32.ptr<float>(y - 1);
+    const float* b = image_f32.ptr<float>(y);
+    const float* c = image_f32.ptr<float>(y + 1);
+    const uint8_t* m = valid_u8.ptr<uint8_t>(y);
+    float row_sum = 0.0f;
+    int row_count = 0;
+    for (int x = 1; x + 1 < image_f32.cols; ++x) {
+      const float l = (a[x - 1] + a[x + 1] + c[x - 1] + c[x + 1]) -
+                      2.0f * (a[x] + c[x] + b[x - 1] + b[x + 1]) + 4.0f * b[x];
+      const float w = m[x] ? 1.0f : 0.0f;
+      row_sum += w * std::abs(l);
+      row_count += m[x] ? 1 : 0;
+    }
+    sum += row_sum;
+    count += row_count;
+  }
+  return count > 0 ? std::sqrt(CV_PI / 2.0) / 6.0 * sum / static_cast<double>(count) : 0.0;
+}
+
+// Sub-pixel position of a peak from its two neighbours (c the peak value); in [-0.5, 0.5].
+double ParabolaDelta(double left, double centre, double right) {
+  const double curvature = left - 2.0 * centre + right;
+  if (!(curvature < 0.0)) return 0.0;
+  return std::clamp(0.5 * (left - right) / curvature, -0.5, 0.5);
+}
+
+double RefineAxis(ScdSubpixel mode, double left, double centre, double right) {
+  if (mode == ScdSubpixel::kGaussian && left > 0 && centre > 0 && right > 0) {
+    return ParabolaDelta(std::log(left), std::log(centre), std::log(right));
+  }
+  return ParabolaDelta(left, centre, right);
+}
+
+std::string Describe(const cv::Mat& m) {
+  std::ostringstream s;
+  s << m.cols << "x" << m.rows << " type " << m.type() << " channels " << m.channels();
+  return s.str();
+}
+
+}  // namespace
+
+const char* ToString(ScdResult::Status status) {
+  switch (status) {
+    case Status::kOk:
+      return "ok";
+    case Status::kTooLittleOverlap:
+      return "too little overlap";
+    case Status::kAmbiguous:
+      return "ambiguous";
+    case Status::kFlat:
+      return "flat";
+    case Status::kBadInput:
+      return "bad input";
+  }
+  return "unknown";
+}
+
+bool ScdOptions::IsValid(std::string* error) const {
+  auto fail = [error](const std::string& why) {
+    if (error) *error = why;
+    return false;
+  };
+  if (!(gradient_sigma_px >= 0.0 && gradient_sigma_px <= 20.0)) {
+    return fail("gradient_sigma_px must be in [0, 20]");
+  }
+  if (!(min_overlap_fraction >= 0.0 && min_overlap_fraction <= 1.0)) {
+    return fail("min_overlap_fraction must be in [0, 1]");
+  }
+  if (!(noise_floor_sigmas >= 0.0 && noise_floor_sigmas <= 100.0)) {
+    return fail("noise_floor_sigmas must be in [0, 100]");
+  }
+  if (!(min_oriented_fraction >= 0.0 && min_oriented_fraction <= 1.0)) {
+    return fail("min_oriented_fraction must be in [0, 1]");
+  }
+  if (!(min_peak_ratio >= 1.0 && min_peak_ratio < 1e3)) {
+    return fail("min_peak_ratio must be in [1, 1000)");
+  }
+  if (!(peak_exclusion_px >= 1.0 && peak_exclusion_px <= 1e3)) {
+    return fail("peak_exclusion_px must be in [1, 1000]");
+  }
+  if (pyramid_factor != 1 && pyramid_factor != 2 && pyramid_factor != 4 && pyramid_factor != 8) {
+    return fail("pyramid_factor must be 1, 2, 4 or 8");
+  }
+  if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
+    return fail("coarse_gradient_sigma_px must be in [0, 20]");
+  }
+  if (!(max_search_radius_px > 0.0 && max_search_radius_px <= 1e5)) {
+    return fail("max_search_radius_px must be in (0, 1e5]");
+  }
+  return true;
+}
+
+namespace {
+
+// Keys (a = -0.5) cubic weights of the samples at -1, 0, 1, 2 for a position t in [0, 1).
+cv::Mat CubicWeights(double t) {
+  const double a = -0.5;
+  auto w = [a](double x) {
+    x = std::abs(x);
+    return x <= 1.0  ? ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0
+           : x < 2.0 ? ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a
+                     : 0.0;
+  };
+  return (cv::Mat_<float>(4, 1) << w(t + 1.0), w(t), w(1.0 - t), w(2.0 - t));
+}
+
+// out(x) = src(x + shift) by separable cubic interpolation (reflected at the border), for
+// |shift| < 2 px.
+void CubicShift(const cv::Mat& src, const Eigen::Vector2d& shift, cv::Mat* out) {
+  const double fx = std::floor(shift.x()), fy = std::floor(shift.y());
+  // Kernel tap j reads src(x + j - anchor); taps are the samples n-1 .. n+2, n = floor(shift).
+  const cv::Point anchor(1 - static_cast<int>(fx), 1 - static_cast<int>(fy));
+  cv::sepFilter2D(src, *out, CV_32F, CubicWeights(shift.x() - fx), CubicWeights(shift.y() - fy),
+                  anchor, 0.0, cv::BORDER_REFLECT);
+}
+
+// Reduces image and mask by an integer factor (pixel i covers [f i, f i + f)); a reduced pixel
+// is valid only when all its pixels are.
+void Reduce(const cv::Mat& image, const cv::Mat& mask, int factor, cv::Mat* image_small,
+            cv::Mat* mask_small, cv::Mat* scratch) {
+  const cv::Rect whole(0, 0, image.cols / factor * factor, image.rows / factor * factor);
+  const cv::Size small(image.cols / factor, image.rows / factor);
+  if (image.depth() == CV_32F) {
+    cv::resize(image(whole), *image_small, small, 0, 0, cv::INTER_AREA);
+  } else {
+    image(whole).convertTo(*scratch, CV_32F);  // Keep the averages' fractions.
+    cv::resize(*scratch, *image_small, small, 0, 0, cv::INTER_AREA);
+  }
+  if (mask.empty()) {
+    mask_small->release();
+    return;
+  }
+  cv::compare(mask(whole), 0, *scratch, cv::CMP_NE);
+  cv::resize(*scratch, *mask_small, small, 0, 0, cv::INTER_AREA);
+  cv::compare(*mask_small, 255, *mask_small, cv::CMP_EQ);
+}
+
+}  // namespace
+
+ScdMatcher::ScdMatcher(ScdOptions options) : options_(options) {
+  if (!options_.IsValid(nullptr)) return;  // Match reports it.
+  auto make = [](double sigma) {
+    Filter f;
+    std::vector<double> g{1.0};
+    if (sigma > 0.0) {
+      const int half = std::max(1, static_cast<int>(std::ceil(3.0 * sigma)));
+      f.gauss = cv::getGaussianKernel(2 * half + 1, sigma, CV_32F);
+      cv::Mat g64;
+      f.gauss.convertTo(g64, CV_64F);
+      g.assign(g64.begin<double>(), g64.end<double>());
+    }
+    // The separable Sobel-of-blur kernel is (g * [-1 0 1]) x (g * [1 2 1]).
+    f.noise_gain = std::sqrt(SumOfSquares(Convolve(g, {-1.0, 0.0, 1.0})) *
+                             SumOfSquares(Convolve(g, {1.0, 2.0, 1.0})));
+    // A mask edge, whose step the mean fill keeps small, must not reach a kept gradient through
+    // the blur (2 sigma holds 95 % of its weight) and the Sobel (1 px).
+    f.erode_px = static_cast<int>(std::ceil(2.0 * sigma)) + 1;
+    return f;
+  };
+  fine_ = make(options_.gradient_sigma_px);
+  coarse_ = make(options_.coarse_gradient_sigma_px);
+}
+
+void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
+                              const cv::Rect& roi, Scratch* scratch, Field* out,
+                              double* noise_std_io) {
+  cv::Mat& work_f32 = scratch->work_f32;
+  cv::Mat& work_mask = scratch->work_mask;
+  cv::Mat& blurred = scratch->blurred;
+  cv::Mat& gx_all = scratch->gx;
+  cv::Mat& gy_all = scratch->gy;
+  cv::Mat& tmp = scratch->tmp;
+  const int margin = std::max(filter.erode_px, filter.gauss.rows / 2 + 2);
+  const cv::Rect ext =
+      cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
+      cv::Rect(0, 0, image.cols, image.rows);
+  const cv::Rect inner(roi.x - ext.x, roi.y - ext.y, roi.width, roi.height);
+  image(ext).convertTo(work_f32, CV_32F);
+
+  // Validity: the mask, minus non-finite samples of float input.
+  if (mask.empty()) {
+    work_mask.create(ext.size(), CV_8U);
+    work_mask.setTo(255);
+  } else {
+    cv::compare(mask(ext), 0, work_mask, cv::CMP_NE);
+  }
+  if (image.depth() == CV_32F && !cv::checkRange(work_f32, true)) {
+    cv::Mat& finite = scratch->finite;
+    cv::compare(cv::abs(work_f32), std::numeric_limits<float>::max(), finite, cv::CMP_LE);
+    cv::bitwise_and(work_mask, finite, work_mask);
+    cv::bitwise_not(finite, tmp);
+    work_f32.setTo(0.0f, tmp);
+  }
+  // Fill the no-data area with the mean so its edge is a small step, then keep only pixels
+  // that neither a mask edge nor the image border (where the blur reflects the image) can
+  // reach through blur and Sobel. Outside the image counts as no data; outside `ext` but
+  // inside the image is farther than the erosion reaches.
+  if (!mask.empty() || image.depth() == CV_32F) {
+    const double fill = cv::mean(work_f32, work_mask)[0];
+    cv::bitwise_not(work_mask, tmp);
+    work_f32.setTo(fill, tmp);
+  }
+  const int e = 2 * filter.erode_px + 1;
+  cv::erode(work_mask, tmp, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(e, 1)),
+            cv::Point(-1, -1), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  cv::erode(tmp, work_mask, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(1, e)),
+            cv::Point(-1, -1), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  double noise_std = *noise_std_io;
+  if (noise_std < 0.0) {
+    noise_std = options_.noise_floor_sigmas > 0.0 ? EstimateNoiseStd(work_f32, work_mask) : 0.0;
+    *noise_std_io = noise_std;
+  }
+  if (filter.gauss.empty()) {
+    work_f32.copyTo(blurred);
+  } else {
+    cv::sepFilter2D(work_f32, blurred, CV_32F, filter.gauss, filter.gauss, cv::Point(-1, -1), 0.0,
+                    cv::BORDER_REFLECT);
+  }
+  cv::Sobel(blurred(inner), gx_all, CV_32F, 1, 0, 3, 1.0, 0.0, cv::BORDER_ISOLATED);
+  cv::Sobel(blurred(inner), gy_all, CV_32F, 0, 1, 3, 1.0, 0.0, cv::BORDER_ISOLATED);
+
+  const float floor =
+      static_cast<float>(options_.noise_floor_sigmas * noise_std * filter.noise_gain);
+  out->region = roi;
+  out->floor_sq = floor * floor;
+  out->valid.create(roi.size(), CV_32F);
+  double valid_px = 0.0;
+  for (int y = 0; y < roi.height; ++y) {
+    const uint8_t* m = work_mask.ptr<uint8_t>(y + inner.y) + inner.x;
+    float* v = out->valid.ptr<float>(y);
+    int row_valid = 0;
+    for (int x = 0; x < roi.width; ++x) {
+      v[x] = m[x] ? 1.0f : 0.0f;
+      row_valid += m[x] ? 1 : 0;
+    }
+    valid_px += row_valid;
+  }
+  out->valid_px = valid_px;
+  Normalise(gx_all, gy_all, out);
+}
+
+void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* out) const {
+  const cv::Size size = out->region.size();
+  const float floor_sq = out->floor_sq;
+  const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
+  const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
+  out->cos_w.create(size, CV_32F);
+  out->sin_w.create(size, CV_32F);
+  if (mask_out_flat) {
+    if (out->den_w.data == out->valid.data) out->den_w = cv::Mat();
+    out->den_w.create(size, CV_32F);
+  }
+  double oriented_px = 0.0;
+  for (int y = 0; y < size.height; ++y) {
+    const float* gx = gx_all.ptr<float>(y);
+    const float* gy = gy_all.ptr<float>(y);
+    const float* v = out->valid.ptr<float>(y);
+    float* c = out->cos_w.ptr<float>(y);
+    float* s = out->sin_w.ptr<float>(y);
+    float* d = mask_out_flat ? out->den_w.ptr<float>(y) : nullptr;
+    int row_oriented = 0;
+    for (int x = 0; x < size.width; ++x) {
+      const bool is_valid = v[x] != 0.0f;
+      const float mag_sq = gx[x] * gx[x] + gy[x] * gy[x];
+      const bool oriented = is_valid && mag_sq > floor_sq && mag_sq > 0.0f;
+      float inv = oriented ? 1.0f / std::sqrt(mag_sq) : 0.0f;
+      if (soft && is_valid) inv = std::sqrt(mag_sq) / (mag_sq + floor_sq + 1e-30f);
+      c[x] = gx[x] * inv;
+      s[x] = gy[x] * inv;
+      if (d) d[x] = oriented ? 1.0f : 0.0f;
+      row_oriented += oriented;
+    }
+    oriented_px += row_oriented;
+  }
+  if (!mask_out_flat) out->den_w = out->valid;
+  out->oriented_px = oriented_px;
+}
+
+void ScdMatcher::ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum) {
+  auto& plan = dft_plans_[{src.cols, src.rows, 0, nonzero_rows}];
+  if (!plan) plan = cv::hal::DFT2D::create(src.cols, src.rows, CV_32F, 1, 1, 0, nonzero_rows);
+  spectrum->create(src.size(), CV_32F);
+  plan->apply(src.data, src.step, spectrum->data, spectrum->step);
+}
+
+void ScdMatcher::InverseDft(const cv::Mat& spectrum, int output_rows, cv::Mat* out) {
+  const int flags = cv::DFT_INVERSE | cv::DFT_REAL_OUTPUT;
+  auto& plan = dft_plans_[{spectrum.cols, spectrum.rows, flags, output_rows}];
+  if (!plan) {
+    plan = cv::hal::DFT2D::create(spectrum.cols, spectrum.rows, CV_32F, 1, 1, flags, output_rows);
+  }
+  out->create(spectrum.size(), CV_32F);
+  plan->apply(spectrum.data, spectrum.step, out->data, out->step);
+}
+
+ScdResult::Status ScdMatcher::CheckFlat(const Field& f, const char* which,
+                                        std::string* reason) const {
+  if (f.valid_px == 0) {
+    *reason = std::string("no valid ") + which + " pixel where the images can overlap";
+    return Status::kTooLittleOverlap;
+  }
+  // Pure noise puts exp(-k^2/2) of the pixels over a floor of k sigmas (Rayleigh magnitude).
+  const double k = options_.noise_floor_sigmas;
+  const double noise_share = k >= 1.0 ? 1.5 * std::exp(-0.5 * k * k) : 0.0;
+  const double min_oriented = options_.min_oriented_fraction + std::min(0.5, noise_share);
+  if (f.oriented_px < std::max(1.0, min_oriented * f.valid_px)) {
+    std::ostringstream s;
+    s << which << " is flat: " << f.oriented_px << " of " << f.valid_px
+      << " valid pixels have a gradient above the noise floor";
+    *reason = s.str();
+    return Status::kFlat;
+  }
+  return Status::kOk;
+}
+
+ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& base,
+                                        const cv::Mat& base_mask, const cv::Mat& templ,
+                                        const cv::Mat& templ_mask, double templ_valid_px,
+                                        cv::Point lo, cv::Point hi, Peak* peak,
+                                        std::string* reason) {
+  // Window clipped to offsets that put the template over the base.
+  const int u0 = std::max(lo.x, 1 - templ.cols), u1 = std::min(hi.x, base.cols - 1);
+  const int v0 = std::max(lo.y, 1 - templ.rows), v1 = std::min(hi.y, base.rows - 1);
+  if (u0 > u1 || v0 > v1) {
+    *reason = "no offset within the search radius puts the template over the base";
+    return Status::kTooLittleOverlap;
+  }
+  const int nu = u1 - u0 + 1, nv = v1 - v0 + 1;
+  // Template pixels that can meet the base for some offset; base pixels they can meet.
+  const cv::Rect templ_roi(
+      cv::Point(std::max(0, -u1), std::max(0, -v1)),
+      cv::Point(std::min(templ.cols, base.cols - u0), std::min(templ.rows, base.rows - v0)));
+  const cv::Rect base_roi(cv::Point(std::max(0, templ_roi.x + u0), std::max(0, templ_roi.y + v0)),
+                          cv::Point(std::min(base.cols, templ_roi.br().x + u1),
+                                    std::min(base.rows, templ_roi.br().y + v1)));
+  Scratch& scratch = &filter == &fine_ ? fine_scratch_ : coarse_scratch_;
+  Field& tfield = scratch.templ_field;
+  Field& bfield = scratch.base_field;
+  double templ_noise = -1.0, base_noise = -1.0;
+  ComputeField(filter, templ, templ_mask, templ_roi, &scratch, &tfield, &templ_noise);
+  ComputeField(filter, base, base_mask, base_roi, &scratch, &bfield, &base_noise);
+  Status flat = CheckFlat(tfield, "template", reason);
+  if (flat == Status::kOk) flat = CheckFlat(bfield, "base", reason);
+  if (flat != Status::kOk) return flat;
+
+  // c(j) = sum_p t(p) b'(p + j), j = 0..n-1, with the base shifted right by d so that j = 0 is
+  // offset (u0, v0); the FFT size leaves no wrap-around for those j.
+  const int dx = base_roi.x - (templ_roi.x + u0), dy = base_roi.y - (templ_roi.y + v0);
+  const int fft_w =
+      cv::getOptimalDFTSize(std::max({2, templ_roi.width + nu - 1, dx + base_roi.width}));
+  const int fft_h =
+      cv::getOptimalDFTSize(std::max(templ_roi.height + nv - 1, dy + base_roi.height));
+  const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
+  const int n_fields = mask_out_flat ? 4 : 3;
+  auto transform = [&](const Field& f, const cv::Rect& place, cv::Mat* spectra) {
+    const cv::Mat* sources[4] = {&f.cos_w, &f.sin_w, &f.valid, &f.den_w};
+    pad_.create(fft_h, fft_w, CV_32F);
+    pad_.setTo(0.0f);
+    for (int k = 0; k < n_fields; ++k) {
+      sources[k]->copyTo(pad_(place));  // Outside `place` stays zero.
+      ForwardDft(pad_, place.br().y, &spectra[k]);
+    }
+  };
+  transform(tfield, cv::Rect(cv::Point(0, 0), templ_roi.size()), spec_t_);
+  transform(bfield, cv::Rect(cv::Point(dx, dy), base_roi.size()), spec_b_);
+  cv::mulSpectrums(spec_b_[0], spec_t_[0], spec_num_, 0, true);
+  cv::mulSpectrums(spec_b_[1], spec_t_[1], spec_den_, 0, true);
+  spec_num_ += spec_den_;
+  InverseDft(spec_num_, nv, &corr_num_);
+  cv::mulSpectrums(spec_b_[2], spec_t_[2], spec_ovl_, 0, true);
+  InverseDft(spec_ovl_, nv, &corr_ovl_);
+  if (mask_out_flat) {
+    cv::mulSpectrums(spec_b_[3], spec_t_[3], spec_den_, 0, true);
+    InverseDft(spec_den_, nv, &corr_den_);
+  }
+
+  // Criterion inside the window; offsets with too little overlap get -inf (never NaN).
+  const float inv_n = 1.0f / static_cast<float>(fft_w * fft_h);
+  const float min_overlap =
+      static_cast<float>(std::max(1.0, options_.min_overlap_fraction * templ_valid_px));
+  const bool significance = options_.peak_criterion == ScdPeakCriterion::kSignificance;
+  constexpr float kRejected = -std::numeric_limits<float>::infinity();
+  score_.create(nv, nu, CV_32F);
+  int best_x = -1, best_y = -1;
+  float best = kRejected;
+  for (int j = 0; j < nv; ++j) {
+    const float* num = corr_num_.ptr<float>(j);
+    const float* ovl = corr_ovl_.ptr<float>(j);
+    const float* den = mask_out_flat ? corr_den_.ptr<float>(j) : ovl;
+    float* out = score_.ptr<float>(j);
+    for (int i = 0; i < nu; ++i) {
+      float s = kRejected;
+      if (ovl[i] * inv_n >= min_overlap && den[i] * inv_n >= 0.5f) {
+        s = significance ? num[i] / std::sqrt(den[i] * inv_n) : num[i] / den[i];
+      }
+      out[i] = s;
+      if (s > best) {
+        best = s;
+        best_x = i;
+        best_y = j;
+      }
+    }
+  }
+  if (best_x < 0) {
+    std::ostringstream s;
+    s << "no offset in the search window overlaps at least " << options_.min_overlap_fraction
+      << " of the template's " << templ_valid_px << " valid pixels";
+    *reason = s.str();
+    return Status::kTooLittleOverlap;
+  }
+
+  // Best local maximum outside the peak's neighbourhood.
+  const double excl_sq = options_.peak_exclusion_px * options_.peak_exclusion_px;
+  float second = kRejected;
+  for (int j = 0; j < nv; ++j) {
+    for (int i = 0; i < nu; ++i) {
+      const float s = score_.at<float>(j, i);
+      if (s <= second || s == kRejected) continue;
+      const double ddx = i - best_x, ddy = j - best_y;
+      if (ddx * ddx + ddy * ddy <= excl_sq) continue;
+      bool is_max = true;
+      for (int b = std::max(0, j - 1); b <= std::min(nv - 1, j + 1) && is_max; ++b) {
+        for (int a = std::max(0, i - 1); a <= std::min(nu - 1, i + 1); ++a) {
+          if (score_.at<float>(b, a) > s) {
+            is_max = false;
+            break;
+          }
+        }
+      }
+      if (is_max) second = s;
+    }
+  }
+  auto at = [&](int i, int j) { return static_cast<double>(score_.at<float>(j, i)); };
+  peak->offset = cv::Point(u0 + best_x, v0 + best_y);
+  peak->subpixel.setZero();
+  if (best_x > 0 && best_x + 1 < nu && at(best_x - 1, best_y) > kRejected &&
+      at(best_x + 1, best_y) > kRejected) {
+    peak->subpixel.x() =
+        RefineAxis(options_.subpixel, at(best_x - 1, best_y), best, at(best_x + 1, best_y));
+  }
+  if (best_y > 0 && best_y + 1 < nv && at(best_x, best_y - 1) > kRejected &&
+      at(best_x, best_y + 1) > kRejected) {
+    peak->subpixel.y() =
+        RefineAxis(options_.subpixel, at(best_x, best_y - 1), best, at(best_x, best_y + 1));
+  }
+  constexpr double kMaxRatio = 1e3;  // Reported when no other peak scores above zero.
+  peak->ratio = !(best > 0.0f)  ? 0.0
+                : second > 0.0f ? std::min(kMaxRatio, best / static_cast<double>(second))
+                                : kMaxRatio;
+  return Status::kOk;
+}
+
+bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point offset,
+                          double* criterion, double* scd) const {
+  // Overlap in template pixels of the two fields.
+  const cv::Rect& t = tfield.region;
+  const cv::Rect both = t & (bfield.region - offset);
+  if (both.empty()) return false;
+  const cv::Rect in_t = both - t.tl();
+  const cv::Rect in_b = both + offset - bfield.region.tl();
+  const double num =
+      tfield.cos_w(in_t).dot(bfield.cos_w(in_b)) + tfield.sin_w(in_t).dot(bfield.sin_w(in_b));
+  const double den = tfield.den_w(in_t).dot(bfield.den_w(in_b));
+  if (!(den >= 0.5)) return false;
+  *scd = std::clamp(num / den, -1.0, 1.0);
+  *criterion =
+      options_.peak_criterion == ScdPeakCriterion::kSignificance ? num / std::sqrt(den) : num / den;
+  return true;
+}
+
+double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift) {
+  if (!(shift.cwiseAbs().maxCoeff() < 2.0)) return -std::numeric_limits<double>::infinity();
+  const Field& source = fine_scratch_.base_field;
+  // shifted(x) = gradient(x + shift); the reflected border only reaches the outer 2 px, which
+  // Refine's margin keeps out of the overlap.
+  CubicShift(fine_scratch_.gx, shift, &shifted_gx_);
+  CubicShift(fine_scratch_.gy, shift, &shifted_gy_);
+  Field& field = shift_scratch_.base_field;
+  field.region = source.region;
+  field.floor_sq = source.floor_sq;
+  field.valid = source.valid;  // Shared: Normalise does not write it.
+  Normalise(shifted_gx_, shifted_gy_, &field);
+  double criterion = 0.0, scd = 0.0;
+  if (!Evaluate(fine_scratch_.templ_field, field, offset, &criterion, &scd)) {
+    return -std::numeric_limits<double>::infinity();
+  }
+  return criterion;
+}
+
+ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_mask,
+                                     const cv::Mat& templ, const cv::Mat& templ_mask,
+                                     cv::Point start, cv::Point lo, cv::Point hi, int max_steps,
+                                     Peak* peak, std::string* reason) {
+  // Fine fields over the overlap at `start`, grown by how far the climb may go.
+  const int grow = max_steps + 1;
+  const cv::Rect templ_rect(0, 0, templ.cols, templ.rows), base_rect(0, 0, base.cols, base.rows);
+  cv::Rect t_roi = templ_rect & (base_rect - start);
+  t_roi =
+      cv::Rect(t_roi.x - grow, t_roi.y - grow, t_roi.width + 2 * grow, t_roi.height + 2 * grow) &
+      templ_rect;
+  cv::Rect b_roi = t_roi + start;
+  b_roi =
+      cv::Rect(b_roi.x - grow, b_roi.y - grow, b_roi.width + 2 * grow, b_roi.height + 2 * grow) &
+      base_rect;
+  if (t_roi.empty() || b_roi.empty()) {
+    *reason = "the coarse peak leaves no overlap at full resolution";
+    return Status::kTooLittleOverlap;
+  }
+  double templ_noise = -1.0, base_noise = -1.0;
+  ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
+               &templ_noise);
+  ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
+               &base_noise);
+
+  // Memoised criterion on a small grid around start.
+  const int half = max_steps + 1, side = 2 * half + 1;
+  constexpr double kUnset = std::numeric_limits<double>::quiet_NaN();
+  constexpr double kNone = -std::numeric_limits<double>::infinity();
+  std::array<double, 21 * 21> grid;
+  std::array<double, 21 * 21> scd_grid;
+  grid.fill(kUnset);
+  auto value = [&](cv::Point o) {
+    const int gi = (o.y - start.y + half) * side + (o.x - start.x + half);
+    if (o.x < lo.x || o.x > hi.x || o.y < lo.y || o.y > hi.y || std::abs(o.x - start.x) > half ||
+        std::abs(o.y - start.y) > half) {
+      return kNone;
+    }
+    if (std::isnan(grid[gi])) {
+      double c = kNone, s = 0.0;
+      if (!Evaluate(fine_scratch_.templ_field, fine_scratch_.base_field, o, &c, &s)) c = kNone;
+      grid[gi] = c;
+      scd_grid[gi] = s;
+    }
+    return grid[gi];
+  };
+  cv::Point at = start;
+  for (int step = 0; step <= max_steps; ++step) {
+    cv::Point next = at;
+    double best = value(at);
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        const cv::Point o = at + cv::Point(dx, dy);
+        if (std::abs(o.x - start.x) >= half || std::abs(o.y - start.y) >= half) continue;
+        const double v = value(o);
+        if (v > best) {
+          best = v;
+          next = o;
+        }
+      }
+    }
+    if (next == at) break;
+    at = next;
+  }
+  const double c = value(at);
+  if (c == kNone) {
+    *reason = "no overlap at full resolution around the coarse peak";
+    return Status::kTooLittleOverlap;
+  }
+  peak->offset = at;
+  peak->subpixel.setZero();
+  const double l = value(at - cv::Point(1, 0)), r = value(at + cv::Point(1, 0));
+  const double u = value(at - cv::Point(0, 1)), d = value(at + cv::Point(0, 1));
+  if (l > kNone && r > kNone) peak->subpixel.x() = RefineAxis(options_.subpixel, l, c, r);
+  if (u > kNone && d > kNone) peak->subpixel.y() = RefineAxis(options_.subpixel, u, c, d);
+  peak->ratio = scd_grid[(at.y - start.y + half) * side + (at.x - start.x + half)];  // SCD
+  const double h = options_.subpixel_step_px;
+  if (h > 0.0) {
+    // Second fit at +-h around the first estimate, all on resampled gradients (same smoothing).
+    const Eigen::Vector2d s0 = peak->subpixel;
+    const double c0 = EvaluateShifted(at, s0);
+    const double xl = EvaluateShifted(at, s0 - Eigen::Vector2d(h, 0));
+    const double xr = EvaluateShifted(at, s0 + Eigen::Vector2d(h, 0));
+    const double yl = EvaluateShifted(at, s0 - Eigen::Vector2d(0, h));
+    const double yr = EvaluateShifted(at, s0 + Eigen::Vector2d(0, h));
+    // Vertex within +-2h of the first estimate (the parabola through 3 points can overshoot).
+    auto vertex = [h](double lower, double mid, double upper) {
+      const double curvature = lower - 2.0 * mid + upper;
+      return curvature < 0.0 ? std::clamp(0.5 * h * (lower - upper) / curvature, -2.0 * h, 2.0 * h)
+                             : 0.0;
+    };
+    if (c0 > kNone && xl > kNone && xr > kNone) peak->subpixel.x() = s0.x() + vertex(xl, c0, xr);
+    if (c0 > kNone && yl > kNone && yr > kNone) peak->subpixel.y() = s0.y() + vertex(yl, c0, yr);
+  }
+  return Status::kOk;
+}
+
+ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
+                            const cv::Mat& templ_mask, const Eigen::Vector2d& predicted_offset,
+                            double search_radius_px) {
+  ScdResult result;
+  auto fail = [&result](Status status, const std::string& reason) {
+    result.status = status;
+    result.reason = reason;
+    return result;
+  };
+  std::string error;
+  if (!options_.IsValid(&error)) return fail(Status::kBadInput, "invalid ScdOptions: " + error);
+  if (base.empty() || templ.empty()) {
+    return fail(Status::kBadInput, base.empty() ? "base image is empty" : "template is empty");
+  }
+  if (!IsSupportedImage(base) || !IsSupportedImage(templ)) {
+    return fail(Status::kBadInput, "images must be one channel CV_8U, CV_16U or CV_32F (base " +
+                                       Describe(base) + ", template " + Describe(templ) + ")");
+  }
+  if (!IsSupportedMask(base_mask, base) || !IsSupportedMask(templ_mask, templ)) {
+    return fail(Status::kBadInput,
+                "masks must be empty or CV_8U one channel of their image's size (base mask " +
+                    Describe(base_mask) + ", template mask " + Describe(templ_mask) + ")");
+  }
+  if (!predicted_offset.allFinite()) {
+    return fail(Status::kBadInput, "predicted offset is not finite");
+  }
+  if (!std::isfinite(search_radius_px) || search_radius_px < 0.0 ||
+      search_radius_px > options_.max_search_radius_px) {
+    return fail(Status::kBadInput, "search radius must be in [0, max_search_radius_px]");
+  }
+  const double templ_valid_px =
+      templ_mask.empty() ? static_cast<double>(templ.total()) : cv::countNonZero(templ_mask);
+  if (templ_valid_px == 0) return fail(Status::kBadInput, "template mask has no valid pixel");
+  if (!base_mask.empty() && cv::countNonZero(base_mask) == 0) {
+    return fail(Status::kBadInput, "base mask has no valid pixel");
+  }
+
+  // Integer offsets of the (Chebyshev) search window that put the template over the base.
+  const double lo_x =
+      std::max(std::ceil(predicted_offset.x() - search_radius_px), 1.0 - templ.cols);
+  const double hi_x =
+      std::min(std::floor(predicted_offset.x() + search_radius_px), base.cols - 1.0);
+  const double lo_y =
+      std::max(std::ceil(predicted_offset.y() - search_radius_px), 1.0 - templ.rows);
+  const double hi_y =
+      std::min(std::floor(predicted_offset.y() + search_radius_px), base.rows - 1.0);
+  if (lo_x > hi_x || lo_y > hi_y) {
+    return fail(Status::kTooLittleOverlap,
+                "no offset within the search radius puts the template over the base");
+  }
+  const cv::Point lo(static_cast<int>(lo_x), static_cast<int>(lo_y));
+  const cv::Point hi(static_cast<int>(hi_x), static_cast<int>(hi_y));
+
+  // Coarse search by FFT (at full resolution when the factor is 1 or the images are small).
+  int f = options_.pyramid_factor;
+  while (f > 1 &&
+         (std::min(templ.cols, templ.rows) / f < 16 || std::min(base.cols, base.rows) / f < 16)) {
+    f /= 2;
+  }
+  Peak peak;
+  Status status;
+  if (f == 1) {
+    status =
+        FftSearch(fine_, base, base_mask, templ, templ_mask, templ_valid_px, lo, hi, &peak, &error);
+  } else {
+    Reduce(base, base_mask, f, &base_small_, &base_mask_small_, &reduce_tmp_);
+    Reduce(templ, templ_mask, f, &templ_small_, &templ_mask_small_, &reduce_tmp_);
+    const double templ_valid_small = templ_mask_small_.empty()
+                                         ? static_cast<double>(templ_small_.total())
+                                         : cv::countNonZero(templ_mask_small_);
+    // Full offset u = f * coarse offset U; the coarse window covers the fine one.
+    auto floor_div = [f](int a) { return a >= 0 ? a / f : -((-a + f - 1) / f); };
+    const cv::Point lo_small(floor_div(lo.x), floor_div(lo.y));
+    const cv::Point hi_small(floor_div(hi.x + f - 1), floor_div(hi.y + f - 1));
+    status = FftSearch(coarse_, base_small_, base_mask_small_, templ_small_, templ_mask_small_,
+                       std::max(1.0, templ_valid_small), lo_small, hi_small, &peak, &error);
+  }
+  if (status != Status::kOk) return fail(status, error);
+  const double ratio = peak.ratio;
+  if (f > 1) {
+    const Eigen::Vector2d coarse =
+        f * (Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel);
+    const cv::Point start(std::clamp(static_cast<int>(std::lround(coarse.x())), lo.x, hi.x),
+                          std::clamp(static_cast<int>(std::lround(coarse.y())), lo.y, hi.y));
+    status = Refine(base, base_mask, templ, templ_mask, start, lo, hi, std::min(f + 1, 9), &peak,
+                    &error);
+    if (status != Status::kOk) return fail(status, error);
+    result.score = peak.ratio;  // Refine leaves the SCD at the peak there.
+  }
+  result.offset = Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel;
+  result.peak_ratio = ratio;
+  if (f == 1) {
+    const int i = peak.offset.x - std::max(lo.x, 1 - templ.cols);
+    const int j = peak.offset.y - std::max(lo.y, 1 - templ.rows);
+    const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
+    const double num = corr_num_.at<float>(j, i);
+    const double den = (mask_out_flat ? corr_den_ : corr_ovl_).at<float>(j, i);
+    result.score = den > 0 ? std::clamp(num / den, -1.0, 1.0) : 0.0;
+  }
+
+  // Overlap at the integer peak, counted on the masks as given (not eroded).
+  const int peak_u = peak.offset.x, peak_v = peak.offset.y;
+  const cv::Rect in_templ =
+      cv::Rect(0, 0, templ.cols, templ.rows) & cv::Rect(-peak_u, -peak_v, base.cols, base.rows);
+  const cv::Rect in_base = in_templ + cv::Point(peak_u, peak_v);
+  if (templ_mask.empty() && base_mask.empty()) {
+    result.overlap_px = in_templ.area();
+  } else if (templ_mask.empty()) {
+    result.overlap_px = cv::countNonZero(base_mask(in_base));
+  } else if (base_mask.empty()) {
+    result.overlap_px = cv::countNonZero(templ_mask(in_templ));
+  } else {
+    cv::bitwise_and(templ_mask(in_templ), base_mask(in_base), tmp_);
+    result.overlap_px = cv::countNonZero(tmp_);
+  }
+  result.overlap_fraction = result.overlap_px / templ_valid_px;
+
+  if (!(ratio > 0.0)) return fail(Status::kAmbiguous, "no offset has a positive SCD score");
+  if (ratio < options_.min_peak_ratio) {
+    std::ostringstream s;
+    s << "peak ratio " << ratio << " is under " << options_.min_peak_ratio << " (SCD score "
+      << result.score << ")";
+    return fail(Status::kAmbiguous, s.str());
+  }
+  result.status = Status::kOk;
+  return result;
+}
+
+}  // namespace irmosaic

@@ -1,0 +1,300 @@
+// SCD coarse matching: exact recovery, invariance, low overlap under noise, bad input.
+#include "irmosaic/scd.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "test_data.h"
+
+namespace irmosaic {
+namespace {
+
+cv::Mat LoadFloat(const std::string& relative) {
+  const cv::Mat gray = cv::imread(testing::SharedDataPath(relative), cv::IMREAD_GRAYSCALE);
+  EXPECT_FALSE(gray.empty()) << relative;
+  cv::Mat f;
+  gray.convertTo(f, CV_32F);
+  return f;
+}
+
+// `image` moved by `shift` (dst(x) = src(x - shift)), Lanczos so the shift is clean.
+cv::Mat Shifted(const cv::Mat& image, const Eigen::Vector2d& shift) {
+  const cv::Mat m = (cv::Mat_<double>(2, 3) << 1, 0, shift.x(), 0, 1, shift.y());
+  cv::Mat out;
+  cv::warpAffine(image, out, m, image.size(), cv::INTER_LANCZOS4, cv::BORDER_REFLECT);
+  return out;
+}
+
+struct Pair {
+  cv::Mat base, base_mask, templ, templ_mask;
+  Eigen::Vector2d truth;  // template p <-> base p + truth
+};
+
+// Base = `image` moved by base_shift, cropped to a; template = `image` moved by templ_shift,
+// cropped to b. Template p is image point p + b.tl - templ_shift, base q is q + a.tl -
+// base_shift, so the truth is b.tl - a.tl - templ_shift + base_shift.
+Pair CropPair(const cv::Mat& image, const cv::Rect& a, const cv::Rect& b,
+              const Eigen::Vector2d& base_shift, const Eigen::Vector2d& templ_shift) {
+  Pair p;
+  p.base = Shifted(image, base_shift)(a).clone();
+  p.templ = Shifted(image, templ_shift)(b).clone();
+  p.truth = Eigen::Vector2d(b.x - a.x, b.y - a.y) - templ_shift + base_shift;
+  return p;
+}
+
+double Error(const ScdResult& r, const Eigen::Vector2d& truth) { return (r.offset - truth).norm(); }
+
+TEST(ScdTest, RecoversIntegerShiftsExactly) {
+  const cv::Mat image = LoadFloat("geotiff/UTM2GTIF.tiff");
+  ScdMatcher matcher;
+  const cv::Rect a(100, 120, 420, 360);
+  for (const cv::Point d : {cv::Point(150, 90), cv::Point(-37, 200), cv::Point(170, -13)}) {
+    const cv::Rect b = a + d;
+    Pair p = CropPair(image, a, b, {0, 0}, {0, 0});
+    const Eigen::Vector2d predicted = p.truth + Eigen::Vector2d(23.0, -31.0);
+    const ScdResult r = matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(), predicted, 64.0);
+    ASSERT_TRUE(r.ok()) << r.reason;
+    EXPECT_LT(Error(r, p.truth), 0.1) << "shift " << d;
+    EXPECT_GT(r.score, 0.5);  // Under-floor pixels count as overlap with no orientation.
+    EXPECT_NEAR(r.overlap_px, (a & b).area(), 0.5);
+    EXPECT_NEAR(r.overlap_fraction, (a & b).area() / double(b.area()), 1e-9);
+  }
+}
+
+TEST(ScdTest, RecoversSubPixelShifts) {
+  ScdMatcher matcher;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> frac(-0.5, 0.5);
+  for (const char* file : {"geotiff/UTM2GTIF.tiff", "thermal/seq_1_60_30/1_60_30_0_00010.jpg"}) {
+    const cv::Mat image = LoadFloat(file);
+    double worst = 0.0;
+    for (int trial = 0; trial < 8; ++trial) {
+      const cv::Rect a(20, 20, 300, 240);
+      const cv::Rect b = a + cv::Point(150 + trial * 7, 100 - trial * 9);
+      const Pair p = CropPair(image, a, b, {frac(rng), frac(rng)}, {frac(rng), frac(rng)});
+      const ScdResult r = matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(),
+                                        p.truth + Eigen::Vector2d(-40, 35), 64.0);
+      ASSERT_TRUE(r.ok()) << file << ": " << r.reason;
+      worst = std::max(worst, Error(r, p.truth));
+    }
+    EXPECT_LT(worst, 0.1) << file;
+  }
+}
+
+TEST(ScdTest, EightAndSixteenBitAgreeWithFloat) {
+  const cv::Mat image = LoadFloat("thermal/seq_1_60_30/1_60_30_0_00020.jpg");
+  const cv::Rect a(10, 10, 360, 300), b(200, 150, 360, 300);
+  const Pair p = CropPair(image, a, b, {0, 0}, {0, 0});
+  ScdMatcher matcher;
+  const ScdResult r32 =
+      matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(), p.truth + Eigen::Vector2d(9, 9), 32);
+  cv::Mat base8, templ8, base16, templ16;
+  p.base.convertTo(base8, CV_8U);
+  p.templ.convertTo(templ8, CV_8U);
+  p.base.convertTo(base16, CV_16U, 200.0);
+  p.templ.convertTo(templ16, CV_16U, 200.0);
+  const ScdResult r8 =
+      matcher.Match(base8, cv::Mat(), templ8, cv::Mat(), p.truth + Eigen::Vector2d(9, 9), 32);
+  const ScdResult r16 =
+      matcher.Match(base16, cv::Mat(), templ16, cv::Mat(), p.truth + Eigen::Vector2d(9, 9), 32);
+  ASSERT_TRUE(r32.ok() && r8.ok() && r16.ok()) << r32.reason << r8.reason << r16.reason;
+  EXPECT_LT(Error(r32, p.truth), 0.1);
+  EXPECT_LT((r8.offset - r32.offset).norm(), 0.05);
+  EXPECT_LT((r16.offset - r32.offset).norm(), 0.05);
+}
+
+TEST(ScdTest, GainAndOffsetChangeTheResultByLessThanATenthOfAPixel) {
+  const cv::Mat image = LoadFloat("thermal/seq_1_60_30/1_60_30_0_00030.jpg");
+  const cv::Rect a(0, 0, 380, 300), b(230, 170, 380, 300);
+  Pair p = CropPair(image, a, b, {0.3, -0.2}, {-0.1, 0.4});
+  // Real noise level of a thermal frame so the noise floor matters.
+  std::mt19937 rng(3);
+  cv::Mat noise(p.templ.size(), CV_32F);
+  cv::randn(noise, 0.0, 4.0);
+  p.templ += noise;
+  cv::randn(noise, 0.0, 4.0);
+  p.base += noise;
+  ScdMatcher matcher;
+  const Eigen::Vector2d predicted = p.truth + Eigen::Vector2d(-20, 17);
+  const ScdResult ref = matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(), predicted, 64);
+  ASSERT_TRUE(ref.ok()) << ref.reason;
+  EXPECT_LT(Error(ref, p.truth), 0.25);
+  const double range = 255.0;  // Applied in float: no clipping, a pure gain/offset change.
+  for (double gain : {0.5, 0.8, 1.3, 2.0}) {
+    for (double offset : {-0.3, 0.0, 0.3}) {
+      const cv::Mat changed = p.templ * gain + offset * range;
+      const ScdResult r = matcher.Match(p.base, cv::Mat(), changed, cv::Mat(), predicted, 64);
+      ASSERT_TRUE(r.ok()) << r.reason;
+      EXPECT_LT((r.offset - ref.offset).norm(), 0.1) << "gain " << gain << " offset " << offset;
+    }
+  }
+}
+
+// Footprint of a warped frame: a convex quadrilateral filling most of `size`.
+cv::Mat RandomFootprint(cv::Size size, std::mt19937* rng) {
+  std::uniform_real_distribution<double> inset(0.0, 0.18);
+  const double w = size.width, h = size.height;
+  std::vector<cv::Point> quad = {{int(inset(*rng) * w), int(inset(*rng) * h)},
+                                 {int((1 - inset(*rng)) * w), int(inset(*rng) * h)},
+                                 {int((1 - inset(*rng)) * w), int((1 - inset(*rng)) * h)},
+                                 {int(inset(*rng) * w), int((1 - inset(*rng)) * h)}};
+  cv::Mat mask = cv::Mat::zeros(size, CV_8U);
+  cv::fillConvexPoly(mask, quad, cv::Scalar(255));
+  return mask;
+}
+
+// Fraction of the template's valid pixels over valid base pixels at integer `offset`.
+double ValidOverlap(const Pair& p, const cv::Point& offset) {
+  const cv::Rect in_t = cv::Rect(0, 0, p.templ_mask.cols, p.templ_mask.rows) &
+                        cv::Rect(-offset.x, -offset.y, p.base_mask.cols, p.base_mask.rows);
+  if (in_t.empty()) return 0.0;
+  cv::Mat both;
+  cv::bitwise_and(p.templ_mask(in_t), p.base_mask(in_t + offset), both);
+  return cv::countNonZero(both) / double(std::max(1, cv::countNonZero(p.templ_mask)));
+}
+
+// Frame `image` warped onto an oblique "ortho" canvas (1.8x, far edge stretched), moved by
+// `sub`, with its validity.
+void WarpToCanvas(const cv::Mat& image, const Eigen::Vector2d& sub, cv::Mat* ortho, cv::Mat* mask) {
+  const std::vector<cv::Point2f> src = {{0, 0}, {640, 0}, {640, 512}, {0, 512}};
+  const std::vector<cv::Point2f> dst = {{0, 0}, {1150, 0}, {950, 760}, {200, 760}};
+  const cv::Mat shift = (cv::Mat_<double>(3, 3) << 1, 0, sub.x(), 0, 1, sub.y(), 0, 0, 1);
+  const cv::Mat h = shift * cv::getPerspectiveTransform(src, dst);
+  cv::warpPerspective(image, *ortho, h, cv::Size(1150, 760), cv::INTER_LINEAR);
+  cv::warpPerspective(cv::Mat(image.size(), CV_8U, cv::Scalar(255)), *mask, h, cv::Size(1150, 760),
+                      cv::INTER_NEAREST);
+}
+
+// Real thermal frames made orthoimage-like: PSNR 20 dB white noise added to each frame (as the
+// sensor does, before the warp), template gain 0.6-1.4 and offset +-30 % of range, each frame
+// warped onto an oblique canvas (the template's moved by a sub-pixel shift), two 640x512 crops
+// with 15-25 % valid overlap and random warped-frame footprints as masks, pose error uniform in
+// +-60 px per axis, search radius 64 px.
+TEST(ScdTest, FifteenToTwentyFivePercentOverlapAtPsnr20) {
+  const std::vector<std::string> frames = {
+      "thermal/seq_1_60_30/1_60_30_0_00000.jpg",   "thermal/seq_1_60_30/1_60_30_0_00012.jpg",
+      "thermal/seq_1_60_30/1_60_30_0_00025.jpg",   "thermal/seq_1_60_30/1_60_30_0_00037.jpg",
+      "thermal/seq_1_60_30/1_60_30_0_00049.jpg",   "thermal/seq_0_100_90/0_100_90_0_08267.jpg",
+      "thermal/seq_0_100_90/0_100_90_0_08282.jpg", "thermal/seq_0_100_90/0_100_90_0_08307.jpg"};
+  const double noise_std = 255.0 / std::pow(10.0, 20.0 / 20.0);  // PSNR 20 dB on 8-bit range.
+  const cv::Size canvas(1150, 760), size(640, 512);
+  std::mt19937 rng(20);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  cv::RNG noise_rng(20);
+  ScdMatcher matcher;
+  int cases = 0, good = 0;
+  for (const std::string& file : frames) {
+    const cv::Mat frame = LoadFloat(file);
+    for (int k = 0; k < 6; ++k) {
+      const Eigen::Vector2d sub(uni(rng) - 0.5, uni(rng) - 0.5);
+      const double gain = 0.6 + 0.8 * uni(rng), offset = (uni(rng) - 0.5) * 0.6 * 255.0;
+      cv::Mat noise(frame.size(), CV_32F), ortho_b, ortho_t, mask_b, mask_t;
+      noise_rng.fill(noise, cv::RNG::NORMAL, 0.0, noise_std);
+      WarpToCanvas(frame + noise, Eigen::Vector2d::Zero(), &ortho_b, &mask_b);
+      noise_rng.fill(noise, cv::RNG::NORMAL, 0.0, noise_std);
+      WarpToCanvas((frame + noise) * gain + offset, sub, &ortho_t, &mask_t);
+      // Crop positions with 15-25 % valid overlap (rejection sampling).
+      Pair p;
+      cv::Rect a, b;
+      double overlap = 0.0;
+      for (int attempt = 0; attempt < 5000; ++attempt) {
+        a = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)),
+                               int(uni(rng) * (canvas.height - size.height))),
+                     size);
+        b = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)),
+                               int(uni(rng) * (canvas.height - size.height))),
+                     size);
+        p.base_mask = mask_b(a) & RandomFootprint(size, &rng);
+        p.templ_mask = mask_t(b) & RandomFootprint(size, &rng);
+        overlap = ValidOverlap(p, b.tl() - a.tl());
+        if (overlap >= 0.15 && overlap <= 0.25) break;
+      }
+      ASSERT_GE(overlap, 0.15);
+      ASSERT_LE(overlap, 0.25);
+      p.base = ortho_b(a).clone();
+      p.templ = ortho_t(b).clone();
+      p.base.setTo(0.0f, ~p.base_mask);
+      p.templ.setTo(0.0f, ~p.templ_mask);
+      p.truth = Eigen::Vector2d(b.x - a.x, b.y - a.y) - sub;
+      const Eigen::Vector2d pose_error(120.0 * (uni(rng) - 0.5), 120.0 * (uni(rng) - 0.5));
+      const ScdResult r =
+          matcher.Match(p.base, p.base_mask, p.templ, p.templ_mask, p.truth + pose_error, 64.0);
+      ++cases;
+      const double e = r.ok() ? Error(r, p.truth) : std::numeric_limits<double>::infinity();
+      if (e < 1.0) {
+        ++good;
+      } else {
+        std::printf("miss: %s case %d: %s (%s) error %.2f score %.3f ratio %.2f\n", file.c_str(), k,
+                    ToString(r.status), r.reason.c_str(), e, r.score, r.peak_ratio);
+      }
+    }
+  }
+  std::printf("SCD 15-25%% overlap, PSNR 20 dB: %d of %d within 1 px\n", good, cases);
+  EXPECT_GE(good, std::ceil(0.95 * cases)) << good << " of " << cases << " within 1 px";
+}
+
+TEST(ScdTest, BadInputGivesAStatusWithAReason) {
+  const cv::Mat image = LoadFloat("thermal/seq_1_60_30/1_60_30_0_00000.jpg");
+  const cv::Mat base = image(cv::Rect(0, 0, 300, 300)).clone();
+  const cv::Mat templ = image(cv::Rect(200, 150, 300, 300)).clone();
+  ScdMatcher matcher;
+  const Eigen::Vector2d predicted(200, 150);
+  auto expect = [](const ScdResult& r, ScdResult::Status status) {
+    EXPECT_EQ(r.status, status) << ToString(r.status) << ": " << r.reason;
+    EXPECT_FALSE(r.reason.empty());
+    EXPECT_TRUE(r.offset.allFinite());
+    EXPECT_TRUE(std::isfinite(r.score) && std::isfinite(r.peak_ratio));
+  };
+  using S = ScdResult::Status;
+  expect(matcher.Match(cv::Mat(), cv::Mat(), templ, cv::Mat(), predicted, 64), S::kBadInput);
+  expect(matcher.Match(base, cv::Mat(), cv::Mat(), cv::Mat(), predicted, 64), S::kBadInput);
+  const cv::Mat none = cv::Mat::zeros(templ.size(), CV_8U);
+  expect(matcher.Match(base, cv::Mat(), templ, none, predicted, 64), S::kBadInput);
+  expect(matcher.Match(base, none, templ, cv::Mat(), predicted, 64), S::kBadInput);
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), {NAN, 0}, 64), S::kBadInput);
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), {0, INFINITY}, 64), S::kBadInput);
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), predicted, NAN), S::kBadInput);
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), predicted, -1), S::kBadInput);
+  // Far from each other: no offset in the window overlaps.
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), {5000, 0}, 64), S::kTooLittleOverlap);
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), {1e300, -1e300}, 64),
+         S::kTooLittleOverlap);
+  // Touching by a sliver only.
+  expect(matcher.Match(base, cv::Mat(), templ, cv::Mat(), {298, 0}, 0), S::kTooLittleOverlap);
+  // Mask of the wrong size or type, colour image.
+  expect(matcher.Match(base, cv::Mat::ones(10, 10, CV_8U), templ, cv::Mat(), predicted, 64),
+         S::kBadInput);
+  cv::Mat colour;
+  cv::merge(std::vector<cv::Mat>{base, base, base}, colour);
+  expect(matcher.Match(colour, cv::Mat(), templ, cv::Mat(), predicted, 64), S::kBadInput);
+  // Flat template (a constant plus a little noise).
+  cv::Mat flat(templ.size(), CV_32F, cv::Scalar(100));
+  cv::Mat noise(templ.size(), CV_32F);
+  cv::randn(noise, 0.0, 2.0);
+  expect(matcher.Match(base, cv::Mat(), flat + noise, cv::Mat(), predicted, 64), S::kFlat);
+  // Invalid options.
+  ScdOptions bad;
+  bad.gradient_sigma_px = -1;
+  std::string why;
+  EXPECT_FALSE(bad.IsValid(&why));
+  EXPECT_FALSE(why.empty());
+  ScdMatcher bad_matcher(bad);
+  expect(bad_matcher.Match(base, cv::Mat(), templ, cv::Mat(), predicted, 64), S::kBadInput);
+  // NaN pixels in float input are treated as no data, never propagated.
+  cv::Mat holed = templ.clone();
+  holed(cv::Rect(20, 20, 40, 40)).setTo(NAN);
+  const ScdResult r =
+      matcher.Match(base, cv::Mat(), holed, cv::Mat(), predicted + Eigen::Vector2d(5, -5), 64);
+  ASSERT_TRUE(r.ok()) << r.reason;
+  EXPECT_LT(Error(r, {200, 150}), 0.1);
+}
+
+}  // namespace
+}  // namespace irmosaic
