@@ -5,5 +5,6 @@
 namespace irmosaic::cli {
 
 int RunFootprints(int argc, char** argv);
+int RunRegister(int argc, char** argv);
 
 }  // namespace irmosaic::cli

@@ -18,6 +18,7 @@ struct Subcommand {
 constexpr Subcommand kSubcommands[] = {
     {"footprints", irmosaic::cli::RunFootprints,
      "frame footprints on the ground from a POS log and a camera file, as GeoJSON"},
+    {"register", irmosaic::cli::RunRegister, "registers two images: homography and quality, JSON"},
 };
 
 void PrintUsage(std::ostream& out) {
