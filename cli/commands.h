@@ -8,5 +8,6 @@ int RunFootprints(int argc, char** argv);
 int RunSynth(int argc, char** argv);
 int RunEval(int argc, char** argv);
 int RunExport(int argc, char** argv);
+int RunRegister(int argc, char** argv);
 
 }  // namespace irmosaic::cli

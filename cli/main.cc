@@ -21,6 +21,7 @@ constexpr Subcommand kSubcommands[] = {
     {"synth", irmosaic::cli::RunSynth, "render a simulated sweep flight with its ground truth"},
     {"eval", irmosaic::cli::RunEval, "score runs' placements against a simulator's truth"},
     {"export", irmosaic::cli::RunExport, "a store as one COG / GeoTIFF / GeoPackage in any CRS"},
+    {"register", irmosaic::cli::RunRegister, "registers two images: homography and quality, JSON"},
 };
 
 void PrintUsage(std::ostream& out) {

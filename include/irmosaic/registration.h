@@ -1,0 +1,147 @@
+#pragma once
+
+// Fine registration of an image pair (paper section 4.3): key points in the overlap, least
+// squares matching at each (fast LSM by default) from a coarse translation, tie points, and a
+// RANSAC homography with quality figures and documented accept criteria.
+//
+// Usage (coarse translation known, e.g. from SCD):
+//   FineRegistrar registrar;                  // one per thread; reuse across pairs
+//   PairRegistration r = registrar.Register(base, base_mask, templ, templ_mask, offset);
+//   if (r.ok()) use(r.base_from_template, r.tie_points);
+//
+// With SCD (include/irmosaic/scd.h) available, PairRegistrar runs SCD first, end to end.
+//
+// Frames: `base_from_template` maps template pixel coordinates to base pixel coordinates
+// (pixel centres at integers, x right, y down). A translation `offset` means template pixel p
+// sits at base pixel p + offset.
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "irmosaic/export.h"
+#include "irmosaic/keypoints.h"
+#include "irmosaic/lsm.h"
+
+#if __has_include("irmosaic/scd.h")
+#include "irmosaic/scd.h"
+#define IRMOSAIC_HAS_SCD 1
+#endif
+
+namespace irmosaic {
+
+struct RansacOptions {
+  enum class Method { kRansac, kUsacMagsac };
+  Method method = Method::kRansac;
+  double threshold_px = 1.0;  // Reprojection error (base pixels) for an inlier.
+  int max_iterations = 2000;
+  double confidence = 0.999;
+};
+
+// Options of fine registration, including the accept criteria (docs/matching.md).
+struct FineRegistrationOptions {
+  LsmOptions lsm;
+  KeypointOptions keypoints;
+  RansacOptions ransac;
+  // Key points keep this many pixels beyond the LSM patch inside both masks, so the patch may
+  // move that far during the iterations.
+  int margin_px = 3;
+  // Scale the template to the base's contrast over the overlap before matching (one gain and
+  // offset per pair), measured after a Gaussian blur of this sigma.
+  bool equalize_gain = true;
+  // Prior on the homography's distortion for the final refinement on the inliers: standard
+  // deviation of its linear terms from identity and of its perspective terms (per px). Tie
+  // points in a narrow strip leave some terms unobserved; 0 disables (plain RANSAC + LM).
+  double prior_linear_sigma = 0.05;
+  double prior_perspective_sigma_per_px = 2e-5;
+  double gain_blur_sigma_px = 3.0;
+  // Accept criteria: a pair is kRejected unless all hold.
+  int min_inliers = 10;
+  double min_inlier_ratio = 0.5;
+  double max_residual_rms_px = 0.8;
+
+  // False with a message when an option is out of range.
+  bool IsValid(std::string* error) const;
+};
+
+// One correspondence: template pixel <-> base pixel.
+struct TiePoint {
+  Eigen::Vector2d in_template = Eigen::Vector2d::Zero();
+  Eigen::Vector2d in_base = Eigen::Vector2d::Zero();
+  double weight = 1.0;  // 1 / (LSM position sigma in px)^2, capped at 1e4.
+  bool inlier = false;  // Agrees with the homography within the RANSAC threshold.
+};
+
+// Result of registering a pair, with figures a user can print.
+struct PairRegistration {
+  enum class Status { kOk, kCoarseFailed, kTooFewTiePoints, kRansacFailed, kRejected, kBadInput };
+  Status status = Status::kBadInput;
+  std::string reason;
+  Eigen::Matrix3d base_from_template = Eigen::Matrix3d::Identity();  // Template px -> base px.
+  std::vector<TiePoint> tie_points;  // All converged LSM matches, with inlier flags.
+  int keypoints = 0;                 // Key points tried.
+  int inliers = 0;
+  double inlier_ratio = 0.0;     // inliers / tie points.
+  double residual_rms_px = 0.0;  // Of the inliers against the homography, base pixels.
+  Eigen::Vector2d offset = Eigen::Vector2d::Zero();  // The coarse translation used.
+#ifdef IRMOSAIC_HAS_SCD
+  ScdResult coarse;  // Filled by PairRegistrar.
+#endif
+
+  bool ok() const { return status == Status::kOk; }
+};
+
+// Name of a status ("ok", "too_few_tie_points", ...).
+IRMOSAIC_EXPORT const char* ToString(PairRegistration::Status status);
+
+// Fine registration from a known translation. Holds the LSM filter bank and buffers.
+class IRMOSAIC_EXPORT FineRegistrar {
+ public:
+  // Throws InputError when the options are invalid.
+  explicit FineRegistrar(FineRegistrationOptions options = {});
+
+  // Images: one channel, CV_8U, CV_16U or CV_32F, any sizes. Masks: CV_8U (non-zero = data)
+  // of the image's size, or empty for all valid. Bad input gives kBadInput, never a throw.
+  PairRegistration Register(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
+                            const cv::Mat& templ_mask, const Eigen::Vector2d& offset);
+
+  const FineRegistrationOptions& options() const { return options_; }
+
+ private:
+  void EqualizeGain(const cv::Mat& valid, int dx, int dy);
+
+  FineRegistrationOptions options_;
+  LsmMatcher lsm_;
+  cv::Mat base_f_, templ_f_, valid_, shifted_;
+};
+
+#ifdef IRMOSAIC_HAS_SCD
+struct PairRegistrationOptions {
+  ScdOptions scd;
+  FineRegistrationOptions fine;
+  bool IsValid(std::string* error) const { return fine.IsValid(error); }
+};
+
+// SCD coarse translation, then fine registration: the pair registered end to end.
+class IRMOSAIC_EXPORT PairRegistrar {
+ public:
+  explicit PairRegistrar(PairRegistrationOptions options = {});
+  // `predicted_offset`: where template pixel (0, 0) is expected in base pixels (from POS);
+  // SCD searches within `search_radius_px` of it.
+  PairRegistration Register(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
+                            const cv::Mat& templ_mask, const Eigen::Vector2d& predicted_offset,
+                            double search_radius_px);
+
+ private:
+  ScdMatcher scd_;
+  FineRegistrar fine_;
+};
+#endif
+
+// Corner RMSE (px) between two homographies over the corners of a rectangle: the figure the
+// tests and benchmarks report.
+IRMOSAIC_EXPORT double CornerRmse(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b,
+                                  const cv::Rect2d& rect);
+
+}  // namespace irmosaic

@@ -1,0 +1,547 @@
+#include "irmosaic/lsm.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "irmosaic/error.h"
+
+namespace irmosaic {
+namespace {
+
+using RowMatrixF = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+// The Freeman-Adelson table (their Fig. 13 / Table 1), g = exp(-(x^2 + y^2)).
+double BasisValue(int k, double x, double y) {
+  const double g = std::exp(-(x * x + y * y));
+  switch (k) {
+    case 0:
+      return 0.9213 * (2.0 * x * x - 1.0) * g;
+    case 1:
+      return 1.843 * x * y * g;
+    case 2:
+      return 0.9213 * (2.0 * y * y - 1.0) * g;
+    case 3:
+      return 0.9780 * (-2.254 * x + x * x * x) * g;
+    case 4:
+      return 0.9780 * (-0.7515 + x * x) * y * g;
+    case 5:
+      return 0.9780 * (-0.7515 + y * y) * x * g;
+    default:
+      return 0.9780 * (-2.254 * y + y * y * y) * g;
+  }
+}
+
+std::string Describe(const char* what, double value, const char* limit, double bound) {
+  std::ostringstream s;
+  s << what << " " << value << " " << limit << " " << bound;
+  return s.str();
+}
+
+// Displacement of the farthest patch corner under x -> x + d + D x.
+double CornerMotion(const Eigen::Vector2d& d, const Eigen::Matrix2d& lin, int r) {
+  double worst = 0.0;
+  for (int sy = -1; sy <= 1; sy += 2) {
+    for (int sx = -1; sx <= 1; sx += 2) {
+      worst = std::max(worst, (d + lin * Eigen::Vector2d(sx * r, sy * r)).norm());
+    }
+  }
+  return worst;
+}
+
+// Condition number of a matrix after scaling its columns to unit norm (0 when a column is
+// null: no texture at all).
+double NormalisedCondition(const Eigen::MatrixXd& a) {
+  Eigen::MatrixXd n = a;
+  for (int j = 0; j < n.cols(); ++j) {
+    const double norm = n.col(j).norm();
+    if (!(norm > 1e-12)) return 0.0;
+    n.col(j) /= norm;
+  }
+  const Eigen::JacobiSVD<Eigen::MatrixXd> svd(n);
+  const auto& s = svd.singularValues();
+  if (!(s(s.size() - 1) > 0.0)) return std::numeric_limits<double>::infinity();
+  return s(0) / s(s.size() - 1);
+}
+
+// Extracts the (2r+3)^2 template patch around p (bilinear for a non-integer p); false when it
+// does not fit in the image.
+bool TemplatePatch(const cv::Mat& templ, const Eigen::Vector2d& p, int r, cv::Mat* out) {
+  const int half = r + 1;
+  if (p.x() - half < 0 || p.y() - half < 0 || p.x() + half > templ.cols - 1 ||
+      p.y() + half > templ.rows - 1) {
+    return false;
+  }
+  const int size = 2 * half + 1;
+  if (p.x() == std::floor(p.x()) && p.y() == std::floor(p.y())) {
+    templ(cv::Rect(static_cast<int>(p.x()) - half, static_cast<int>(p.y()) - half, size, size))
+        .copyTo(*out);
+  } else {
+    cv::getRectSubPix(templ, cv::Size(size, size), cv::Point2f(p.x(), p.y()), *out, CV_32F);
+  }
+  return true;
+}
+
+}  // namespace
+
+const char* ToString(LsmResult::Status status) {
+  switch (status) {
+    case LsmResult::Status::kConverged:
+      return "converged";
+    case LsmResult::Status::kNotConverged:
+      return "not_converged";
+    case LsmResult::Status::kDiverged:
+      return "diverged";
+    case LsmResult::Status::kLowTexture:
+      return "low_texture";
+    case LsmResult::Status::kIllConditioned:
+      return "ill_conditioned";
+    case LsmResult::Status::kOutOfBounds:
+      return "out_of_bounds";
+    case LsmResult::Status::kBadInput:
+      return "bad_input";
+  }
+  return "unknown";
+}
+
+bool LsmOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& m) {
+    if (error) *error = m;
+    return false;
+  };
+  if (method == LsmMethod::kFast && scales_px.empty()) return fail("scales_px is empty");
+  for (double s : scales_px) {
+    if (!(s >= 1.0 && s <= 100.0)) return fail("each of scales_px must be in [1, 100] px");
+  }
+  if (!(support_in_scales >= 1.5 && support_in_scales <= 5.0)) {
+    return fail("support_in_scales must be in [1.5, 5]");
+  }
+  if (tlsm_radius_px < 0 || tlsm_radius_px > 200) return fail("tlsm_radius_px must be in [0, 200]");
+  if (translation_only_iterations < 0) return fail("translation_only_iterations must be >= 0");
+  if (max_iterations < 1 || max_iterations > 1000)
+    return fail("max_iterations must be in [1, 1000]");
+  if (!(convergence_px > 0.0)) return fail("convergence_px must be > 0");
+  if (!(max_shift_px > 0.0)) return fail("max_shift_px must be > 0");
+  if (!(max_affine_deviation > 0.0 && max_affine_deviation < 1.0)) {
+    return fail("max_affine_deviation must be in (0, 1)");
+  }
+  if (!(max_condition > 1.0)) return fail("max_condition must be > 1");
+  if (!(max_position_sigma_px > 0.0)) return fail("max_position_sigma_px must be > 0");
+  return true;
+}
+
+std::vector<cv::Mat> SteerableBasisFilters(double scale_px, int radius_px, bool zero_mean) {
+  const int size = 2 * radius_px + 1;
+  cv::Mat envelope(size, size, CV_64F);
+  std::vector<cv::Mat> filters(7);
+  for (int k = 0; k < 7; ++k) filters[k].create(size, size, CV_64F);
+  for (int v = -radius_px; v <= radius_px; ++v) {
+    for (int u = -radius_px; u <= radius_px; ++u) {
+      const double x = u / scale_px, y = v / scale_px;
+      envelope.at<double>(v + radius_px, u + radius_px) = std::exp(-(x * x + y * y));
+      for (int k = 0; k < 7; ++k) {
+        filters[k].at<double>(v + radius_px, u + radius_px) = BasisValue(k, x, y);
+      }
+    }
+  }
+  if (zero_mean) {
+    // Removing a multiple of the envelope (not a constant) keeps the filter local.
+    const double envelope_sum = cv::sum(envelope)[0];
+    for (cv::Mat& f : filters) {
+      f -= envelope * (cv::sum(f)[0] / envelope_sum);
+      f /= cv::norm(f, cv::NORM_L2);
+    }
+  }
+  return filters;
+}
+
+LsmMatcher::LsmMatcher(LsmOptions options) : options_(std::move(options)) {
+  std::string error;
+  if (!options_.IsValid(&error)) {
+    throw InputError(SourceLocation{"LsmOptions", 0, 0, ""}, error, "fix the option");
+  }
+  double largest = 0.0;
+  for (double s : options_.scales_px) largest = std::max(largest, s);
+  const int flsm_radius = static_cast<int>(std::ceil(options_.support_in_scales * largest));
+  if (options_.method == LsmMethod::kTraditional) {
+    radius_ = options_.tlsm_radius_px > 0 ? options_.tlsm_radius_px : flsm_radius;
+    return;
+  }
+  radius_ = flsm_radius;
+  const int size = 2 * radius_ + 1;
+  bank_.resize(7 * static_cast<int>(options_.scales_px.size()), size * size);
+  int row = 0;
+  for (double s : options_.scales_px) {
+    for (const cv::Mat& f : SteerableBasisFilters(s, radius_, true)) {
+      for (int i = 0; i < size * size; ++i) bank_(row, i) = static_cast<float>(f.at<double>(i));
+      ++row;
+    }
+  }
+  {
+    // Orthonormalise the bank's rows (same span): the 21 equations then carry independent,
+    // equal noise, so least squares on them is the best linear estimate for white noise.
+    const Eigen::MatrixXd b = bank_.cast<double>();
+    const Eigen::MatrixXd gram = b * b.transpose();
+    const Eigen::LLT<Eigen::MatrixXd> llt(gram);
+    bank_ = llt.matrixL().solve(b).cast<float>();
+  }
+}
+
+bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const Eigen::Matrix2d& m,
+                           int r, cv::Mat* out) const {
+  // Bounds: an affine image of the square is inside the image iff its 4 corners are; the
+  // cubic kernel reads one more pixel on each side.
+  for (int sy = -1; sy <= 1; sy += 2) {
+    for (int sx = -1; sx <= 1; sx += 2) {
+      const Eigen::Vector2d q = c + m * Eigen::Vector2d(sx * r, sy * r);
+      if (!(q.x() >= 1.0 && q.y() >= 1.0 && q.x() < base.cols - 3 && q.y() < base.rows - 3)) {
+        return false;
+      }
+    }
+  }
+  const int size = 2 * r + 1;
+  out->create(size, size, CV_32F);
+  // Own bicubic sampler (Keys, a = -0.5): cv::warpAffine quantises positions to 1/32 px, and
+  // bilinear interpolation biases sub-pixel positions by a few hundredths of a pixel.
+  auto weights = [](float t, float* w) {
+    const float t2 = t * t, t3 = t2 * t;
+    w[0] = -0.5f * t3 + t2 - 0.5f * t;
+    w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
+    w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
+    w[3] = 0.5f * t3 - 0.5f * t2;
+  };
+  for (int v = 0; v < size; ++v) {
+    float* dst = out->ptr<float>(v);
+    const double row_x = c.x() + m(0, 0) * (-r) + m(0, 1) * (v - r);
+    const double row_y = c.y() + m(1, 0) * (-r) + m(1, 1) * (v - r);
+    for (int u = 0; u < size; ++u) {
+      const double x = row_x + m(0, 0) * u, y = row_y + m(1, 0) * u;
+      const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+      float wx[4], wy[4];
+      weights(static_cast<float>(x - x0), wx);
+      weights(static_cast<float>(y - y0), wy);
+      float sum = 0.0f;
+      for (int j = 0; j < 4; ++j) {
+        const float* p = base.ptr<float>(y0 - 1 + j) + x0 - 1;
+        sum += wy[j] * (wx[0] * p[0] + wx[1] * p[1] + wx[2] * p[2] + wx[3] * p[3]);
+      }
+      dst[u] = sum;
+    }
+  }
+  return true;
+}
+
+LsmResult LsmMatcher::Match(const cv::Mat& base, const cv::Mat& templ,
+                            const Eigen::Vector2d& point_in_template,
+                            const Eigen::Vector2d& initial_in_base,
+                            const Eigen::Matrix2d& initial_linear) {
+  LsmResult result;
+  result.position_in_base = initial_in_base;
+  result.base_from_template_linear = initial_linear;
+  if (base.empty() || templ.empty() || base.type() != CV_32FC1 || templ.type() != CV_32FC1) {
+    result.reason = "base and template must be non-empty CV_32FC1 images";
+    return result;
+  }
+  if (!point_in_template.allFinite() || !initial_in_base.allFinite() ||
+      !initial_linear.allFinite() || std::abs(initial_linear.determinant()) < 1e-6) {
+    result.reason = "point, initial position or initial affine is not finite or singular";
+    return result;
+  }
+  return options_.method == LsmMethod::kFast
+             ? MatchFast(base, templ, point_in_template, initial_in_base, initial_linear)
+             : MatchTraditional(base, templ, point_in_template, initial_in_base, initial_linear);
+}
+
+namespace {
+
+// Shared end-of-iteration checks; returns true when the loop must stop with `result` set.
+bool CheckDivergence(const LsmOptions& o, const Eigen::Vector2d& c0, const Eigen::Vector2d& c,
+                     const Eigen::Matrix2d& m0, const Eigen::Matrix2d& m, double gain,
+                     LsmResult* result) {
+  if (!c.allFinite() || !m.allFinite() || !std::isfinite(gain)) {
+    result->status = LsmResult::Status::kDiverged;
+    result->reason = "the estimate became non-finite";
+    return true;
+  }
+  if ((c - c0).norm() > o.max_shift_px) {
+    result->status = LsmResult::Status::kDiverged;
+    result->reason =
+        Describe("moved", (c - c0).norm(), "px from its start, more than", o.max_shift_px);
+    return true;
+  }
+  const double deviation = (m0.inverse() * m - Eigen::Matrix2d::Identity()).cwiseAbs().maxCoeff();
+  if (deviation > o.max_affine_deviation) {
+    result->status = LsmResult::Status::kDiverged;
+    result->reason = Describe("affine deviates by", deviation, "from its start, more than",
+                              o.max_affine_deviation);
+    return true;
+  }
+  if (!(gain > 0.1 && gain < 10.0)) {
+    result->status = LsmResult::Status::kDiverged;
+    result->reason = Describe("gain", gain, "outside", 0.1) + " .. 10";
+    return true;
+  }
+  return false;
+}
+
+// A-posteriori std (px, larger axis) of the patch position from the normal matrix and the
+// residual; `translation_rows` index the d_x, d_y unknowns in patch coordinates.
+double PositionSigma(const Eigen::MatrixXd& normal, double residual_sq, int redundancy,
+                     const Eigen::Matrix2d& m) {
+  if (redundancy <= 0) return std::numeric_limits<double>::infinity();
+  const Eigen::MatrixXd cov = normal.inverse() * (residual_sq / redundancy);
+  Eigen::Matrix2d t;
+  t << cov(0, 0), cov(0, 3), cov(3, 0), cov(3, 3);
+  const Eigen::Matrix2d in_base = m * t * m.transpose();
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(in_base);
+  return std::sqrt(std::max(0.0, eig.eigenvalues()(1)));
+}
+
+// Solves a * delta = b by least squares; without `full`, only the two translations and the
+// radiometric unknowns (columns 6..) are free and the affine part stays zero.
+Eigen::VectorXd SolveStep(const Eigen::MatrixXd& a, const Eigen::VectorXd& b, bool full) {
+  if (full) return a.colPivHouseholderQr().solve(b);
+  std::vector<int> cols = {0, 3};
+  for (int j = 6; j < a.cols(); ++j) cols.push_back(j);
+  Eigen::MatrixXd sub(a.rows(), static_cast<int>(cols.size()));
+  for (size_t j = 0; j < cols.size(); ++j) sub.col(j) = a.col(cols[j]);
+  const Eigen::VectorXd x = sub.colPivHouseholderQr().solve(b);
+  Eigen::VectorXd delta = Eigen::VectorXd::Zero(a.cols());
+  for (size_t j = 0; j < cols.size(); ++j) delta(cols[j]) = x(j);
+  return delta;
+}
+
+// As SolveStep, from normal equations.
+Eigen::VectorXd SolveNormal(const Eigen::MatrixXd& normal, const Eigen::VectorXd& rhs, bool full) {
+  if (full) return normal.ldlt().solve(rhs);
+  std::vector<int> cols = {0, 3};
+  for (int j = 6; j < normal.cols(); ++j) cols.push_back(j);
+  const int k = static_cast<int>(cols.size());
+  Eigen::MatrixXd sub(k, k);
+  Eigen::VectorXd sub_rhs(k);
+  for (int i = 0; i < k; ++i) {
+    sub_rhs(i) = rhs(cols[i]);
+    for (int j = 0; j < k; ++j) sub(i, j) = normal(cols[i], cols[j]);
+  }
+  const Eigen::VectorXd x = sub.ldlt().solve(sub_rhs);
+  Eigen::VectorXd delta = Eigen::VectorXd::Zero(normal.cols());
+  for (int i = 0; i < k; ++i) delta(cols[i]) = x(i);
+  return delta;
+}
+
+}  // namespace
+
+LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
+                                const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
+  LsmResult result;
+  result.position_in_base = c0;
+  result.base_from_template_linear = m0;
+  const int r = radius_, size = 2 * r + 1, n = size * size;
+  cv::Mat t;
+  if (!TemplatePatch(templ, p, r, &t)) {
+    result.status = LsmResult::Status::kOutOfBounds;
+    result.reason = "template patch does not fit in the template image";
+    return result;
+  }
+  // Design images of the inverse-compositional LSM, from the template patch: constant over
+  // the iterations, so their 21 projections are computed once per key point.
+  RowMatrixF design(n, 7);
+  const double inv_r = 1.0 / r;
+  for (int v = 0; v < size; ++v) {
+    const float* up = t.ptr<float>(v) + 1;
+    const float* mid = t.ptr<float>(v + 1) + 1;
+    const float* down = t.ptr<float>(v + 2) + 1;
+    const float yn = static_cast<float>((v - r) * inv_r);
+    for (int u = 0; u < size; ++u) {
+      const float xn = static_cast<float>((u - r) * inv_r);
+      const float ix = 0.5f * (mid[u + 1] - mid[u - 1]);
+      const float iy = 0.5f * (down[u] - up[u]);
+      auto row = design.row(v * size + u);
+      row << ix, xn * ix, yn * ix, iy, xn * iy, yn * iy, mid[u];
+    }
+  }
+  const Eigen::MatrixXd projected = (bank_ * design).cast<double>();  // 21 x 7
+  const int unknowns = options_.estimate_gain ? 7 : 6;
+  result.condition = NormalisedCondition(projected.leftCols(unknowns));
+  if (result.condition == 0.0) {
+    result.status = LsmResult::Status::kLowTexture;
+    result.reason = "flat patch: a filter projection of the gradients is zero";
+    return result;
+  }
+  if (result.condition > options_.max_condition) {
+    result.status = LsmResult::Status::kIllConditioned;
+    result.reason = Describe("condition number", result.condition, "above", options_.max_condition);
+    return result;
+  }
+
+  Eigen::Vector2d c = c0;
+  Eigen::Matrix2d m = m0;
+  double gain = 1.0;
+  Eigen::VectorXd residual;
+  Eigen::MatrixXd a(projected.rows(), unknowns);
+  result.status = LsmResult::Status::kNotConverged;
+  bool full = options_.translation_only_iterations == 0 && options_.estimate_affine;
+  for (int it = 1; it <= options_.max_iterations; ++it) {
+    result.iterations = it;
+    if (!WarpPatch(base, c, m, r, &warped_)) {
+      result.status = LsmResult::Status::kOutOfBounds;
+      result.reason = "the warped patch left the base image";
+      return result;
+    }
+    const Eigen::Map<const Eigen::VectorXf> w(warped_.ptr<float>(), n);
+    const Eigen::VectorXd b = (bank_ * w).cast<double>() - gain * projected.col(6);
+    a.leftCols(6) = gain * projected.leftCols(6);
+    if (unknowns == 7) a.col(6) = projected.col(6);
+    // Translation (and gain) first: under heavy noise a first full affine step from a
+    // pixel away can jump far; the affine is released once the translation has settled.
+    const Eigen::VectorXd delta = SolveStep(a, b, full);
+    residual = b - a * delta;
+    // Inverse composition: w(x) <- w(x) o (x + d + D x)^-1.
+    const Eigen::Vector2d d(delta(0), delta(3));
+    Eigen::Matrix2d lin;
+    lin << delta(1) * inv_r, delta(2) * inv_r, delta(4) * inv_r, delta(5) * inv_r;
+    m = m * (Eigen::Matrix2d::Identity() + lin).inverse();
+    c = c - m * d;
+    if (unknowns == 7) gain += delta(6);
+    if (CheckDivergence(options_, c0, c, m0, m, gain, &result)) return result;
+    if (CornerMotion(d, lin, r) < options_.convergence_px) {
+      if (full) {
+        result.status = LsmResult::Status::kConverged;
+        break;
+      }
+      if (!options_.estimate_affine) {
+        result.status = LsmResult::Status::kConverged;
+        break;
+      }
+      full = true;  // Translation settled: release the affine.
+    }
+    if (it >= options_.translation_only_iterations && options_.estimate_affine) full = true;
+  }
+  result.position_in_base = c;
+  result.base_from_template_linear = m;
+  result.gain = gain;
+  result.residual_rms = std::sqrt(residual.squaredNorm() / residual.size());
+  result.position_sigma_px =
+      PositionSigma(a.transpose() * a, residual.squaredNorm(), a.rows() - a.cols(), m);
+  if (result.status == LsmResult::Status::kNotConverged) {
+    result.reason = "still moving after max_iterations";
+  } else if (!(result.position_sigma_px <= options_.max_position_sigma_px)) {
+    result.status = LsmResult::Status::kLowTexture;
+    result.reason = Describe("position sigma", result.position_sigma_px, "px above",
+                             options_.max_position_sigma_px);
+  }
+  return result;
+}
+
+LsmResult LsmMatcher::MatchTraditional(const cv::Mat& base, const cv::Mat& templ,
+                                       const Eigen::Vector2d& p, const Eigen::Vector2d& c0,
+                                       const Eigen::Matrix2d& m0) {
+  LsmResult result;
+  result.position_in_base = c0;
+  result.base_from_template_linear = m0;
+  const int r = radius_, size = 2 * r + 1, n = size * size;
+  cv::Mat t;
+  if (!TemplatePatch(templ, p, r, &t)) {
+    result.status = LsmResult::Status::kOutOfBounds;
+    result.reason = "template patch does not fit in the template image";
+    return result;
+  }
+  const int unknowns = options_.estimate_gain ? 8 : 7;  // 6 affine, [gain], offset.
+  Eigen::MatrixXd design(n, unknowns);
+  Eigen::VectorXd rhs(n);
+  Eigen::Vector2d c = c0;
+  Eigen::Matrix2d m = m0;
+  double h1 = 1.0, h0 = 0.0;  // Template = h0 + h1 * base.
+  const double inv_r = 1.0 / r;
+  Eigen::VectorXd residual;
+  Eigen::MatrixXd normal;
+  result.status = LsmResult::Status::kNotConverged;
+  bool full = options_.translation_only_iterations == 0 && options_.estimate_affine;
+  for (int it = 1; it <= options_.max_iterations; ++it) {
+    result.iterations = it;
+    // One pixel wider than the window for the central-difference gradients (Gruen: the
+    // gradients of the re-sampled search patch, recomputed every iteration).
+    if (!WarpPatch(base, c, m, r + 1, &warped_)) {
+      result.status = LsmResult::Status::kOutOfBounds;
+      result.reason = "the warped patch left the base image";
+      return result;
+    }
+    for (int v = 0; v < size; ++v) {
+      const float* up = warped_.ptr<float>(v) + 1;
+      const float* mid = warped_.ptr<float>(v + 1) + 1;
+      const float* down = warped_.ptr<float>(v + 2) + 1;
+      const float* tv = t.ptr<float>(v + 1) + 1;
+      const double yn = (v - r) * inv_r;
+      for (int u = 0; u < size; ++u) {
+        const double xn = (u - r) * inv_r;
+        const double gx = h1 * 0.5 * (mid[u + 1] - mid[u - 1]);
+        const double gy = h1 * 0.5 * (down[u] - up[u]);
+        const int i = v * size + u;
+        design(i, 0) = gx;
+        design(i, 1) = xn * gx;
+        design(i, 2) = yn * gx;
+        design(i, 3) = gy;
+        design(i, 4) = xn * gy;
+        design(i, 5) = yn * gy;
+        if (unknowns == 8) design(i, 6) = mid[u];
+        design(i, unknowns - 1) = 1.0;
+        rhs(i) = tv[u] - h0 - h1 * mid[u];
+      }
+    }
+    if (it == 1) {
+      result.condition = NormalisedCondition(design.leftCols(6));
+      if (result.condition == 0.0) {
+        result.status = LsmResult::Status::kLowTexture;
+        result.reason = "flat patch: zero gradient";
+        return result;
+      }
+      if (result.condition > options_.max_condition) {
+        result.status = LsmResult::Status::kIllConditioned;
+        result.reason =
+            Describe("condition number", result.condition, "above", options_.max_condition);
+        return result;
+      }
+    }
+    normal.noalias() = design.transpose() * design;
+    const Eigen::VectorXd delta = SolveNormal(normal, design.transpose() * rhs, full);
+    residual = rhs - design * delta;
+    // Forward composition: w(x) <- w(x + d + D x).
+    const Eigen::Vector2d d(delta(0), delta(3));
+    Eigen::Matrix2d lin;
+    lin << delta(1) * inv_r, delta(2) * inv_r, delta(4) * inv_r, delta(5) * inv_r;
+    c = c + m * d;
+    m = m * (Eigen::Matrix2d::Identity() + lin);
+    if (unknowns == 8) h1 += delta(6);
+    h0 += delta(unknowns - 1);
+    if (CheckDivergence(options_, c0, c, m0, m, 1.0 / h1, &result)) return result;
+    if (CornerMotion(d, lin, r) < options_.convergence_px) {
+      if (full) {
+        result.status = LsmResult::Status::kConverged;
+        break;
+      }
+      if (!options_.estimate_affine) {
+        result.status = LsmResult::Status::kConverged;
+        break;
+      }
+      full = true;  // Translation settled: release the affine.
+    }
+    if (it >= options_.translation_only_iterations && options_.estimate_affine) full = true;
+  }
+  result.position_in_base = c;
+  result.base_from_template_linear = m;
+  result.gain = 1.0 / h1;
+  result.residual_rms = std::sqrt(residual.squaredNorm() / residual.size());
+  result.position_sigma_px = PositionSigma(normal, residual.squaredNorm(), n - unknowns, m);
+  if (result.status == LsmResult::Status::kNotConverged) {
+    result.reason = "still moving after max_iterations";
+  } else if (!(result.position_sigma_px <= options_.max_position_sigma_px)) {
+    result.status = LsmResult::Status::kLowTexture;
+    result.reason = Describe("position sigma", result.position_sigma_px, "px above",
+                             options_.max_position_sigma_px);
+  }
+  return result;
+}
+
+}  // namespace irmosaic

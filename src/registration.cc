@@ -1,0 +1,357 @@
+#include "irmosaic/registration.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "irmosaic/error.h"
+
+namespace irmosaic {
+namespace {
+
+bool UsableImage(const cv::Mat& image) {
+  const int depth = image.depth();
+  return !image.empty() && image.channels() == 1 &&
+         (depth == CV_8U || depth == CV_16U || depth == CV_32F);
+}
+
+bool UsableMask(const cv::Mat& mask, const cv::Mat& image) {
+  return mask.empty() || (mask.type() == CV_8UC1 && mask.size() == image.size());
+}
+
+// Integral image of (mask != 0), or empty for an empty mask (all valid).
+cv::Mat ValidIntegral(const cv::Mat& mask) {
+  if (mask.empty()) return {};
+  cv::Mat binary = mask != 0, integral;
+  cv::integral(binary / 255, integral, CV_32S);
+  return integral;
+}
+
+// True when the square of half-size `half` around (x, y) lies inside the image and, when
+// given, entirely inside the mask.
+bool SquareValid(const cv::Mat& integral, cv::Size size, int x, int y, int half) {
+  if (x - half < 0 || y - half < 0 || x + half >= size.width || y + half >= size.height) {
+    return false;
+  }
+  if (integral.empty()) return true;
+  const int x0 = x - half, y0 = y - half, x1 = x + half + 1, y1 = y + half + 1;
+  const int sum = integral.at<int>(y1, x1) - integral.at<int>(y0, x1) - integral.at<int>(y1, x0) +
+                  integral.at<int>(y0, x0);
+  return sum == (2 * half + 1) * (2 * half + 1);
+}
+
+std::string Figure(const char* what, double value, const char* relation, double bound) {
+  std::ostringstream s;
+  s << what << " " << value << " " << relation << " " << bound;
+  return s.str();
+}
+
+// Gauss-Newton refinement of a homography on the inlier tie points with a Gaussian prior on
+// its distortion (linear part near identity, perspective terms near zero), in coordinates
+// centred on the tie points' centroid and scaled by 100 px. Tie points in a narrow overlap
+// strip leave some of the 8 parameters unobserved; the prior keeps them at the near-translation
+// an orthorectified pair has, instead of letting noise extrapolate them.
+Eigen::Matrix3d RefineWithPrior(const std::vector<TiePoint>& ties, const Eigen::Matrix3d& start,
+                                double point_sigma_px, double linear_sigma,
+                                double perspective_sigma_per_px) {
+  constexpr double kScale = 100.0;
+  Eigen::Vector2d centre = Eigen::Vector2d::Zero();
+  int n = 0;
+  for (const TiePoint& t : ties) {
+    if (t.inlier) centre += t.in_template, ++n;
+  }
+  if (n < 4) return start;
+  centre /= n;
+  const Eigen::Vector2d moved = (start * centre.homogeneous()).hnormalized();
+  Eigen::Matrix3d from_templ = Eigen::Matrix3d::Identity(), from_base = Eigen::Matrix3d::Identity();
+  from_templ.topLeftCorner<2, 2>() /= kScale;
+  from_templ.topRightCorner<2, 1>() = -centre / kScale;
+  from_base.topLeftCorner<2, 2>() /= kScale;
+  from_base.topRightCorner<2, 1>() = -moved / kScale;
+  Eigen::Matrix3d h = from_base * start * from_templ.inverse();
+  h /= h(2, 2);
+  // Parameters: h - I (without h22), 8 of them.
+  auto unpack = [](const Eigen::Matrix<double, 8, 1>& x) {
+    Eigen::Matrix3d m;
+    m << 1 + x(0), x(1), x(2), x(3), 1 + x(4), x(5), x(6), x(7), 1;
+    return m;
+  };
+  Eigen::Matrix<double, 8, 1> x;
+  x << h(0, 0) - 1, h(0, 1), h(0, 2), h(1, 0), h(1, 1) - 1, h(1, 2), h(2, 0), h(2, 1);
+  const double point_sigma = point_sigma_px / kScale;
+  const double prior_sigma[8] = {linear_sigma,
+                                 linear_sigma,
+                                 0,
+                                 linear_sigma,
+                                 linear_sigma,
+                                 0,
+                                 perspective_sigma_per_px * kScale,
+                                 perspective_sigma_per_px * kScale};
+  for (int iteration = 0; iteration < 10; ++iteration) {
+    Eigen::Matrix<double, 8, 8> normal = Eigen::Matrix<double, 8, 8>::Zero();
+    Eigen::Matrix<double, 8, 1> rhs = Eigen::Matrix<double, 8, 1>::Zero();
+    const Eigen::Matrix3d m = unpack(x);
+    for (const TiePoint& t : ties) {
+      if (!t.inlier) continue;
+      const Eigen::Vector2d u = (from_templ * t.in_template.homogeneous()).hnormalized();
+      const Eigen::Vector2d v = (from_base * t.in_base.homogeneous()).hnormalized();
+      const Eigen::Vector3d q = m * u.homogeneous();
+      const Eigen::Vector2d e = v - q.hnormalized();
+      Eigen::Matrix<double, 2, 8> j;
+      const double w = q.z();
+      j << u.x() / w, u.y() / w, 1 / w, 0, 0, 0, -u.x() * q.x() / (w * w), -u.y() * q.x() / (w * w),
+          0, 0, 0, u.x() / w, u.y() / w, 1 / w, -u.x() * q.y() / (w * w), -u.y() * q.y() / (w * w);
+      normal += j.transpose() * j / (point_sigma * point_sigma);
+      rhs += j.transpose() * e / (point_sigma * point_sigma);
+    }
+    for (int k = 0; k < 8; ++k) {
+      if (prior_sigma[k] <= 0) continue;
+      normal(k, k) += 1.0 / (prior_sigma[k] * prior_sigma[k]);
+      rhs(k) -= x(k) / (prior_sigma[k] * prior_sigma[k]);
+    }
+    const Eigen::Matrix<double, 8, 1> step = normal.ldlt().solve(rhs);
+    if (!step.allFinite()) return start;
+    x += step;
+    if (step.norm() < 1e-10) break;
+  }
+  Eigen::Matrix3d refined = from_base.inverse() * unpack(x) * from_templ;
+  return refined / refined(2, 2);
+}
+
+}  // namespace
+
+const char* ToString(PairRegistration::Status status) {
+  switch (status) {
+    case PairRegistration::Status::kOk:
+      return "ok";
+    case PairRegistration::Status::kCoarseFailed:
+      return "coarse_failed";
+    case PairRegistration::Status::kTooFewTiePoints:
+      return "too_few_tie_points";
+    case PairRegistration::Status::kRansacFailed:
+      return "ransac_failed";
+    case PairRegistration::Status::kRejected:
+      return "rejected";
+    case PairRegistration::Status::kBadInput:
+      return "bad_input";
+  }
+  return "unknown";
+}
+
+bool FineRegistrationOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& m) {
+    if (error) *error = m;
+    return false;
+  };
+  if (!lsm.IsValid(error) || !keypoints.IsValid(error)) return false;
+  if (!(ransac.threshold_px > 0.0)) return fail("ransac.threshold_px must be > 0");
+  if (ransac.max_iterations < 1) return fail("ransac.max_iterations must be >= 1");
+  if (!(ransac.confidence > 0.0 && ransac.confidence < 1.0)) {
+    return fail("ransac.confidence must be in (0, 1)");
+  }
+  if (margin_px < 0) return fail("margin_px must be >= 0");
+  if (min_inliers < 4) return fail("min_inliers must be >= 4 (a homography needs 4 points)");
+  if (!(min_inlier_ratio >= 0.0 && min_inlier_ratio <= 1.0)) {
+    return fail("min_inlier_ratio must be in [0, 1]");
+  }
+  if (!(max_residual_rms_px > 0.0)) return fail("max_residual_rms_px must be > 0");
+  return true;
+}
+
+FineRegistrar::FineRegistrar(FineRegistrationOptions options)
+    : options_(std::move(options)), lsm_([&] {
+        std::string error;
+        if (!options_.IsValid(&error)) {
+          throw InputError(SourceLocation{"FineRegistrationOptions", 0, 0, ""}, error,
+                           "fix the option");
+        }
+        return options_.lsm;
+      }()) {}
+
+PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& base_mask,
+                                         const cv::Mat& templ, const cv::Mat& templ_mask,
+                                         const Eigen::Vector2d& offset) {
+  PairRegistration out;
+  out.offset = offset;
+  if (!UsableImage(base) || !UsableImage(templ)) {
+    out.reason = "images must be non-empty, one channel, 8-bit, 16-bit or float";
+    return out;
+  }
+  if (!UsableMask(base_mask, base) || !UsableMask(templ_mask, templ)) {
+    out.reason = "masks must be empty or CV_8U of their image's size";
+    return out;
+  }
+  if (!offset.allFinite() || offset.cwiseAbs().maxCoeff() > 1e6) {
+    out.reason = "the coarse offset is not finite";
+    return out;
+  }
+  base.convertTo(base_f_, CV_32F);
+  templ.convertTo(templ_f_, CV_32F);
+  if (!cv::checkRange(base_f_) || !cv::checkRange(templ_f_)) {
+    out.reason = "an image holds NaN or infinite values";
+    return out;
+  }
+
+  // Where a key point may sit: its LSM patch (+1 px for gradients, +2 for the cubic kernel,
+  // + the margin it may move) inside the template and, shifted by the offset, inside the base.
+  const int half = lsm_.patch_radius_px() + 3 + options_.margin_px;
+  const cv::Mat base_integral = ValidIntegral(base_mask);
+  const cv::Mat templ_integral = ValidIntegral(templ_mask);
+  const int dx = static_cast<int>(std::lround(offset.x()));
+  const int dy = static_cast<int>(std::lround(offset.y()));
+  valid_.create(templ.size(), CV_8U);
+  valid_.setTo(0);
+  // Only the overlap's bounding box can hold key points.
+  const int x_begin = std::max(half, half - dx),
+            x_end = std::min(templ.cols - half, base.cols - half - dx);
+  const int y_begin = std::max(half, half - dy),
+            y_end = std::min(templ.rows - half, base.rows - half - dy);
+  for (int y = y_begin; y < y_end; ++y) {
+    unsigned char* row = valid_.ptr<unsigned char>(y);
+    for (int x = x_begin; x < x_end; ++x) {
+      row[x] = SquareValid(templ_integral, templ.size(), x, y, half) &&
+                       SquareValid(base_integral, base.size(), x + dx, y + dy, half + 1)
+                   ? 255
+                   : 0;
+    }
+  }
+  const std::vector<Eigen::Vector2d> keypoints =
+      DetectKeypoints(templ_f_, valid_, options_.keypoints);
+  if (options_.equalize_gain) EqualizeGain(valid_, dx, dy);
+  out.keypoints = static_cast<int>(keypoints.size());
+
+  for (const Eigen::Vector2d& p : keypoints) {
+    const LsmResult r = lsm_.Match(base_f_, templ_f_, p, p + offset);
+    if (!r.ok()) continue;
+    TiePoint tie;
+    tie.in_template = p;
+    tie.in_base = r.position_in_base;
+    tie.weight = std::min(1e4, 1.0 / std::max(1e-8, r.position_sigma_px * r.position_sigma_px));
+    out.tie_points.push_back(tie);
+  }
+  const int needed = std::max(4, options_.min_inliers);
+  if (static_cast<int>(out.tie_points.size()) < needed) {
+    out.status = PairRegistration::Status::kTooFewTiePoints;
+    out.reason = Figure("converged tie points", out.tie_points.size(), "below", needed) + " (of " +
+                 std::to_string(out.keypoints) + " key points)";
+    return out;
+  }
+
+  std::vector<cv::Point2d> from, to;
+  for (const TiePoint& t : out.tie_points) {
+    from.emplace_back(t.in_template.x(), t.in_template.y());
+    to.emplace_back(t.in_base.x(), t.in_base.y());
+  }
+  const int method =
+      options_.ransac.method == RansacOptions::Method::kRansac ? cv::RANSAC : cv::USAC_MAGSAC;
+  cv::Mat inlier_mask;
+  const cv::Mat h = cv::findHomography(from, to, method, options_.ransac.threshold_px, inlier_mask,
+                                       options_.ransac.max_iterations, options_.ransac.confidence);
+  if (h.empty() || !cv::checkRange(h)) {
+    out.status = PairRegistration::Status::kRansacFailed;
+    out.reason = "RANSAC found no homography";
+    return out;
+  }
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) out.base_from_template(r, c) = h.at<double>(r, c);
+  }
+  out.base_from_template /= out.base_from_template(2, 2);
+  auto mark_inliers = [&](double* sum_sq) {
+    out.inliers = 0;
+    *sum_sq = 0.0;
+    for (TiePoint& t : out.tie_points) {
+      const Eigen::Vector3d q = out.base_from_template * t.in_template.homogeneous();
+      const double e = (q.hnormalized() - t.in_base).norm();
+      t.inlier = e <= options_.ransac.threshold_px;
+      if (t.inlier) {
+        ++out.inliers;
+        *sum_sq += e * e;
+      }
+    }
+  };
+  double sum_sq = 0.0;
+  if (options_.prior_linear_sigma > 0.0) {
+    mark_inliers(&sum_sq);
+    const double rms = std::sqrt(sum_sq / std::max(1, out.inliers));
+    out.base_from_template =
+        RefineWithPrior(out.tie_points, out.base_from_template, std::max(0.05, rms),
+                        options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
+  }
+  mark_inliers(&sum_sq);
+  out.inlier_ratio = static_cast<double>(out.inliers) / out.tie_points.size();
+  out.residual_rms_px = out.inliers > 0 ? std::sqrt(sum_sq / out.inliers) : 0.0;
+
+  out.status = PairRegistration::Status::kRejected;
+  if (out.inliers < options_.min_inliers) {
+    out.reason = Figure("inliers", out.inliers, "below", options_.min_inliers);
+  } else if (out.inlier_ratio < options_.min_inlier_ratio) {
+    out.reason = Figure("inlier ratio", out.inlier_ratio, "below", options_.min_inlier_ratio);
+  } else if (out.residual_rms_px > options_.max_residual_rms_px) {
+    out.reason = Figure("inlier residual RMS", out.residual_rms_px, "px above",
+                        options_.max_residual_rms_px);
+  } else {
+    out.status = PairRegistration::Status::kOk;
+  }
+  return out;
+}
+
+void FineRegistrar::EqualizeGain(const cv::Mat& valid, int dx, int dy) {
+  // One gain for the pair, from the overlap's contrast after a blur that removes most sensor
+  // noise: steadier than a gain unknown per patch when the noise is heavy.
+  const cv::Rect box = cv::boundingRect(valid);
+  const cv::Rect in_base = (box + cv::Point(dx, dy)) & cv::Rect(0, 0, base_f_.cols, base_f_.rows);
+  if (box.area() < 100 || in_base.size() != box.size()) return;
+  cv::Mat a, b;
+  cv::GaussianBlur(templ_f_(box), a, cv::Size(), options_.gain_blur_sigma_px);
+  cv::GaussianBlur(base_f_(in_base), b, cv::Size(), options_.gain_blur_sigma_px);
+  cv::Scalar mean_a, std_a, mean_b, std_b;
+  cv::meanStdDev(a, mean_a, std_a, valid(box));
+  cv::meanStdDev(b, mean_b, std_b, valid(box));
+  if (!(std_a[0] > 1e-6 && std_b[0] > 1e-6)) return;
+  templ_f_ = (templ_f_ - mean_a[0]) * (std_b[0] / std_a[0]) + mean_b[0];
+}
+
+double CornerRmse(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b, const cv::Rect2d& rect) {
+  double sum_sq = 0.0;
+  const Eigen::Vector2d corners[4] = {{rect.x, rect.y},
+                                      {rect.x + rect.width, rect.y},
+                                      {rect.x + rect.width, rect.y + rect.height},
+                                      {rect.x, rect.y + rect.height}};
+  for (const Eigen::Vector2d& c : corners) {
+    const Eigen::Vector2d pa = (a * c.homogeneous()).hnormalized();
+    const Eigen::Vector2d pb = (b * c.homogeneous()).hnormalized();
+    sum_sq += (pa - pb).squaredNorm();
+  }
+  return std::sqrt(sum_sq / 4.0);
+}
+
+#ifdef IRMOSAIC_HAS_SCD
+PairRegistrar::PairRegistrar(PairRegistrationOptions options)
+    : scd_(options.scd), fine_(options.fine) {}
+
+PairRegistration PairRegistrar::Register(const cv::Mat& base, const cv::Mat& base_mask,
+                                         const cv::Mat& templ, const cv::Mat& templ_mask,
+                                         const Eigen::Vector2d& predicted_offset,
+                                         double search_radius_px) {
+  const ScdResult coarse =
+      scd_.Match(base, base_mask, templ, templ_mask, predicted_offset, search_radius_px);
+  if (!coarse.ok()) {
+    PairRegistration out;
+    out.status = coarse.status == ScdResult::Status::kBadInput
+                     ? PairRegistration::Status::kBadInput
+                     : PairRegistration::Status::kCoarseFailed;
+    out.reason = "coarse matching (SCD): " + coarse.reason;
+    out.offset = predicted_offset;
+    out.coarse = coarse;
+    return out;
+  }
+  PairRegistration out = fine_.Register(base, base_mask, templ, templ_mask, coarse.offset);
+  out.coarse = coarse;
+  return out;
+}
+#endif
+
+}  // namespace irmosaic

@@ -1,0 +1,183 @@
+#include "irmosaic/registration.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <random>
+
+#include "registration_pairs.h"
+#include "test_data.h"
+
+namespace irmosaic {
+namespace {
+
+using testing::MakePair;
+using testing::PairDegradation;
+
+cv::Mat LoadGray(const std::string& relative) {
+  return cv::imread(testing::SharedDataPath(relative), cv::IMREAD_GRAYSCALE);
+}
+
+const char* kSources[] = {"geotiff/UTM2GTIF.tiff", "geotiff/naip/m_4709963_se_14_1_20090818.tif",
+                          "geotiff/naip/m_4709963_se_14_1_20190904.tif"};
+
+struct Tally {
+  int pairs = 0, within = 0, ok = 0;
+  std::vector<double> errors;
+};
+
+Tally RunSimulated(const PairDegradation& d, int pairs_per_source, unsigned seed,
+                   const FineRegistrationOptions& options, double bound_px) {
+  FineRegistrar registrar(options);
+  std::mt19937 rng(seed);
+  Tally t;
+  for (const char* name : kSources) {
+    const cv::Mat source = LoadGray(name);
+    EXPECT_FALSE(source.empty()) << name;
+    if (source.empty()) continue;
+    for (int i = 0; i < pairs_per_source; ++i) {
+      const auto pair = MakePair(source, d, i % 2 == 0, &rng);
+      const PairRegistration r =
+          registrar.Register(pair.base, {}, pair.templ, {}, pair.prior_offset);
+      const double e = r.ok() ? CornerRmse(r.base_from_template, pair.base_from_template,
+                                           pair.overlap_in_template)
+                              : 1e9;
+      ++t.pairs;
+      t.ok += r.ok();
+      t.within += e < bound_px;
+      t.errors.push_back(e);
+      if (!r.ok())
+        std::printf("  %s pair %d: %s: %s\n", name, i, ToString(r.status), r.reason.c_str());
+    }
+  }
+  std::sort(t.errors.begin(), t.errors.end());
+  std::printf("%d pairs, %d ok, %d within %.2f px; median %.3f px, 95th pct %.3f px\n", t.pairs,
+              t.ok, t.within, bound_px, t.errors[t.errors.size() / 2],
+              t.errors[std::min(t.errors.size() - 1, t.errors.size() * 95 / 100)]);
+  return t;
+}
+
+TEST(FineRegistration, CleanSimulatedPairsAreExact) {
+  PairDegradation d;  // 1 deg attitude error only.
+  const Tally t = RunSimulated(d, 4, 21, {}, 0.1);
+  EXPECT_EQ(t.ok, t.pairs);
+  EXPECT_EQ(t.within, t.pairs);
+}
+
+TEST(FineRegistration, DistortedPairsWithGainAndBlurMeetTheIssueBound) {
+  // Issue 5: 1 deg attitude error, gain change, blur sigma 2: corner RMSE of the homography over
+  // the overlap < 0.3 px in >= 95 % of pairs. The issue also adds noise at PSNR 20 dB; that
+  // part is NOT met yet (1 of 24 pairs within 0.3 px, see docs/benchmarks.md), so it is
+  // measured by bench/registration_bench.cc rather than asserted here.
+  PairDegradation d;
+  d.gain = 0.8;
+  d.offset = 20.0;
+  d.blur_sigma_px = 2.0;
+  const Tally t = RunSimulated(d, 8, 22, {}, 0.3);
+  EXPECT_GE(t.within, 0.95 * t.pairs);
+}
+
+TEST(FineRegistration, BadInputGivesAStatusNotACrash) {
+  FineRegistrar registrar;
+  const cv::Mat image(200, 200, CV_8U, cv::Scalar(7)), color(200, 200, CV_8UC3);
+  EXPECT_EQ(registrar.Register({}, {}, image, {}, {0, 0}).status,
+            PairRegistration::Status::kBadInput);
+  EXPECT_EQ(registrar.Register(color, {}, image, {}, {0, 0}).status,
+            PairRegistration::Status::kBadInput);
+  EXPECT_EQ(registrar.Register(image, cv::Mat(10, 10, CV_8U), image, {}, {0, 0}).status,
+            PairRegistration::Status::kBadInput);
+  EXPECT_EQ(registrar.Register(image, {}, image, {}, {NAN, 0}).status,
+            PairRegistration::Status::kBadInput);
+  // Flat images: no key points, so too few tie points, with a reason.
+  const PairRegistration flat = registrar.Register(image, {}, image, {}, {0, 0});
+  EXPECT_EQ(flat.status, PairRegistration::Status::kTooFewTiePoints);
+  EXPECT_FALSE(flat.reason.empty());
+  // No overlap at all.
+  EXPECT_EQ(registrar.Register(image, {}, image, {}, {5000, 0}).status,
+            PairRegistration::Status::kTooFewTiePoints);
+  FineRegistrationOptions bad;
+  bad.min_inliers = 2;
+  std::string error;
+  EXPECT_FALSE(bad.IsValid(&error));
+}
+
+TEST(FineRegistration, KeyPointsStayInsideBothMasks) {
+  const cv::Mat source = LoadGray(kSources[0]);
+  ASSERT_FALSE(source.empty());
+  std::mt19937 rng(3);
+  const auto pair = MakePair(source, PairDegradation{}, true, &rng);
+  // Orthoimage-like masks: a slanted edge cuts both frames.
+  cv::Mat base_mask(pair.base.size(), CV_8U, cv::Scalar(0)), templ_mask = base_mask.clone();
+  const std::vector<cv::Point> base_poly = {{0, 0}, {639, 0}, {639, 300}, {600, 511}, {0, 511}};
+  const std::vector<cv::Point> templ_poly = {{30, 0}, {639, 0}, {639, 511}, {0, 511}};
+  cv::fillConvexPoly(base_mask, base_poly, cv::Scalar(255));
+  cv::fillConvexPoly(templ_mask, templ_poly, cv::Scalar(255));
+  FineRegistrar registrar;
+  const PairRegistration r =
+      registrar.Register(pair.base, base_mask, pair.templ, templ_mask, pair.prior_offset);
+  ASSERT_TRUE(r.ok()) << r.reason;
+  const int half = LsmMatcher().patch_radius_px();
+  for (const TiePoint& t : r.tie_points) {
+    const cv::Rect patch(static_cast<int>(t.in_template.x()) - half,
+                         static_cast<int>(t.in_template.y()) - half, 2 * half + 1, 2 * half + 1);
+    EXPECT_EQ(cv::countNonZero(templ_mask(patch)), patch.area());
+    const cv::Rect in_base(static_cast<int>(t.in_base.x()) - half,
+                           static_cast<int>(t.in_base.y()) - half, 2 * half + 1, 2 * half + 1);
+    EXPECT_EQ(cv::countNonZero(base_mask(in_base)), in_base.area());
+  }
+  EXPECT_LT(CornerRmse(r.base_from_template, pair.base_from_template, pair.overlap_in_template),
+            0.3);
+}
+
+}  // namespace
+}  // namespace irmosaic
+
+namespace irmosaic {
+namespace {
+
+// Real thermal frames (no ground truth): registering i -> i+1 and i+1 -> i+2 must compose to
+// the direct i -> i+2 result within 1 px where the latter has tie points. (The issue's noise
+// criterion on these frames is measured in bench/registration_bench.cc; it is not met yet.)
+PairRegistration RegisterThermal(FineRegistrar* registrar, int base_index, int templ_index) {
+  char a_name[64], b_name[64];
+  std::snprintf(a_name, sizeof(a_name), "thermal/seq_1_60_30/1_60_30_0_%05d.jpg", base_index);
+  std::snprintf(b_name, sizeof(b_name), "thermal/seq_1_60_30/1_60_30_0_%05d.jpg", templ_index);
+  const cv::Mat a = LoadGray(a_name), b = LoadGray(b_name);
+  EXPECT_FALSE(a.empty() || b.empty());
+  // Coarse translation by phase correlation (SCD lives in issue 4).
+  cv::Mat fa, fb, window;
+  a.convertTo(fa, CV_64F);
+  b.convertTo(fb, CV_64F);
+  cv::createHanningWindow(window, a.size(), CV_64F);
+  const cv::Point2d shift = cv::phaseCorrelate(fb, fa, window);
+  return registrar->Register(a, {}, b, {}, {shift.x, shift.y});
+}
+
+TEST(FineRegistration, ThermalFramesComposeConsistently) {
+  FineRegistrar registrar;
+  // Triples inside continuous stretches of the sequence (it jumps at 2-4, 12-13, 23-24, ...).
+  for (int first : {0, 8, 16, 28, 38}) {
+    const PairRegistration r01 = RegisterThermal(&registrar, first, first + 1);
+    const PairRegistration r12 = RegisterThermal(&registrar, first + 1, first + 2);
+    const PairRegistration r02 = RegisterThermal(&registrar, first, first + 2);
+    ASSERT_TRUE(r01.ok() && r12.ok() && r02.ok()) << r01.reason << r12.reason << r02.reason;
+    // Gap at the direct pair's inlier tie points: where both results are measured.
+    const Eigen::Matrix3d composed = r01.base_from_template * r12.base_from_template;
+    double sum_sq = 0.0;
+    for (const TiePoint& t : r02.tie_points) {
+      if (!t.inlier) continue;
+      sum_sq += ((composed * t.in_template.homogeneous()).hnormalized() -
+                 (r02.base_from_template * t.in_template.homogeneous()).hnormalized())
+                    .squaredNorm();
+    }
+    const double gap = std::sqrt(sum_sq / r02.inliers);
+    std::printf("  frames %d..%d: cycle gap %.3f px, inliers %d/%d/%d\n", first, first + 2, gap,
+                r01.inliers, r12.inliers, r02.inliers);
+    EXPECT_LT(gap, 1.0);
+  }
+}
+
+}  // namespace
+}  // namespace irmosaic
