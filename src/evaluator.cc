@@ -122,17 +122,17 @@ void Placements::SaveJson(const std::string& path) const {
   if (!out) throw OutputError("cannot write the placements file " + path);
 }
 
-std::vector<PairRegistration> LoadPairsJson(const std::string& path) {
+std::vector<PairHomography> LoadPairsJson(const std::string& path) {
   const json doc = ReadJsonFile(path);
   if (!doc.is_object() || !doc.contains("pairs") || !doc.at("pairs").is_array()) {
     throw InputError({path, 0, 0, "pairs"}, "missing 'pairs' array",
                      "write {\"pairs\": [{\"base\": i, \"template\": j, ...}]}");
   }
-  std::vector<PairRegistration> pairs;
+  std::vector<PairHomography> pairs;
   int k = 0;
   for (const json& p : doc.at("pairs")) {
     const std::string where = "pairs[" + std::to_string(k++) + "].";
-    PairRegistration r;
+    PairHomography r;
     r.base = static_cast<int>(Number(p, "base", path, where));
     r.template_index = static_cast<int>(Number(p, "template", path, where));
     r.base_from_template = Matrix(p, "base_from_template", path, where);
@@ -141,9 +141,9 @@ std::vector<PairRegistration> LoadPairsJson(const std::string& path) {
   return pairs;
 }
 
-void SavePairsJson(const std::vector<PairRegistration>& pairs, const std::string& path) {
+void SavePairsJson(const std::vector<PairHomography>& pairs, const std::string& path) {
   json a = json::array();
-  for (const PairRegistration& p : pairs) {
+  for (const PairHomography& p : pairs) {
     a.push_back({{"base", p.base},
                  {"template", p.template_index},
                  {"base_from_template", MatrixJson(p.base_from_template)}});
@@ -259,13 +259,13 @@ PlacementScore Evaluator::ScorePlacements(const Placements& run, const std::stri
   return score;
 }
 
-PairsScore Evaluator::ScorePairs(const std::vector<PairRegistration>& pairs) const {
+PairsScore Evaluator::ScorePairs(const std::vector<PairHomography>& pairs) const {
   PairsScore score;
   score.pairs_given = static_cast<int>(pairs.size());
   const std::vector<Eigen::Vector2d> grid =
       ImageGrid(options_.grid, options_.width, options_.height);
   std::vector<double> values;
-  for (const PairRegistration& p : pairs) {
+  for (const PairHomography& p : pairs) {
     const auto b = truth_by_index_.find(p.base);
     const auto t = truth_by_index_.find(p.template_index);
     if (b == truth_by_index_.end() || t == truth_by_index_.end()) continue;

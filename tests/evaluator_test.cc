@@ -117,9 +117,9 @@ TEST(Evaluator, MissingFramesAreCounted) {
 TEST(Evaluator, PairsScoredInTheOverlap) {
   const Placements truth = SimulatedTruth(20);
   const Evaluator ev(truth);
-  std::vector<PairRegistration> pairs;
+  std::vector<PairHomography> pairs;
   for (int i = 0; i + 1 < 8; ++i) {
-    PairRegistration p;
+    PairHomography p;
     p.base = i;
     p.template_index = i + 1;
     Eigen::Matrix3d shift = Eigen::Matrix3d::Identity();

@@ -43,16 +43,16 @@ struct IRMOSAIC_EXPORT Placements {
 };
 
 // One pairwise registration: base_from_template in undistorted image pixels.
-struct PairRegistration {
+struct PairHomography {
   int base = 0;
   int template_index = 0;
   Eigen::Matrix3d base_from_template = Eigen::Matrix3d::Identity();
 };
 
 // Reads the pairs JSON; throws InputError.
-IRMOSAIC_EXPORT std::vector<PairRegistration> LoadPairsJson(const std::string& path);
+IRMOSAIC_EXPORT std::vector<PairHomography> LoadPairsJson(const std::string& path);
 // Writes the pairs JSON; throws OutputError.
-IRMOSAIC_EXPORT void SavePairsJson(const std::vector<PairRegistration>& pairs,
+IRMOSAIC_EXPORT void SavePairsJson(const std::vector<PairHomography>& pairs,
                                    const std::string& path);
 
 struct EvaluatorOptions {
@@ -116,7 +116,7 @@ class IRMOSAIC_EXPORT Evaluator {
   // truth's mosaic pixels after converting the run's grid through WGS84.
   PlacementScore ScorePlacements(const Placements& run, const std::string& name = "") const;
   // Each pair: template grid points mapped by the given and the true base_from_template.
-  PairsScore ScorePairs(const std::vector<PairRegistration>& pairs) const;
+  PairsScore ScorePairs(const std::vector<PairHomography>& pairs) const;
 
   const Placements& truth() const { return truth_; }
 
