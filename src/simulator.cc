@@ -305,22 +305,27 @@ SimFrame FlightSimulator::Render(int index) const {
       }
     }
   }
-  const int64_t col0 = static_cast<int64_t>(std::floor(lo.x())) - 2;
-  const int64_t row0 = static_cast<int64_t>(std::floor(lo.y())) - 2;
-  const double span_x = std::ceil(hi.x()) - static_cast<double>(col0) + 3;
-  const double span_y = std::ceil(hi.y()) - static_cast<double>(row0) + 3;
-  if (span_x * span_y > 64e6) {
+  // Ground samples needed: sample j is centred at mosaic coordinate step * j + (step - 1) / 2.
+  constexpr double kStep = SyntheticGround::kSampleStep;
+  const double sample_offset = (kStep - 1.0) / 2.0;
+  const int64_t col0 = static_cast<int64_t>(std::floor((lo.x() - sample_offset) / kStep)) - 2;
+  const int64_t row0 = static_cast<int64_t>(std::floor((lo.y() - sample_offset) / kStep)) - 2;
+  const double span_x = std::ceil((hi.x() - sample_offset) / kStep) - static_cast<double>(col0) + 3;
+  const double span_y = std::ceil((hi.y() - sample_offset) / kStep) - static_cast<double>(row0) + 3;
+  if (span_x * span_y > 16e6) {
     throw InputError({"synth options", 0, 0, ""},
                      "frame " + std::to_string(index) + " covers an absurd ground area",
                      "lower the sweep angles or coarsen gsd_m");
   }
   cv::Mat patch;
   ground_->Fill(col0, row0, static_cast<int>(span_x), static_cast<int>(span_y), &patch);
+  // Patch sample coordinates of a mosaic pixel coordinate.
+  Eigen::Matrix3d patch_from_mosaic = Eigen::Matrix3d::Identity();
+  patch_from_mosaic(0, 0) = patch_from_mosaic(1, 1) = 1.0 / kStep;
+  patch_from_mosaic(0, 2) = -sample_offset / kStep - static_cast<double>(col0);
+  patch_from_mosaic(1, 2) = -sample_offset / kStep - static_cast<double>(row0);
   cv::Mat signal;
   if (map_x.empty()) {
-    Eigen::Matrix3d patch_from_mosaic = Eigen::Matrix3d::Identity();
-    patch_from_mosaic(0, 2) = -static_cast<double>(col0);
-    patch_from_mosaic(1, 2) = -static_cast<double>(row0);
     const Eigen::Matrix3d m = patch_from_mosaic * h * image_from_render;
     cv::Matx33d mcv;
     for (int r = 0; r < 3; ++r) {
@@ -329,8 +334,8 @@ SimFrame FlightSimulator::Render(int index) const {
     cv::warpPerspective(patch, signal, mcv, cv::Size(rw, rh),
                         cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
   } else {
-    map_x -= static_cast<double>(col0);
-    map_y -= static_cast<double>(row0);
+    map_x.convertTo(map_x, CV_32F, 1.0 / kStep, patch_from_mosaic(0, 2));
+    map_y.convertTo(map_y, CV_32F, 1.0 / kStep, patch_from_mosaic(1, 2));
     cv::remap(patch, signal, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
   }
   if (kx.size() > 1 || ky.size() > 1) {

@@ -269,13 +269,13 @@ TEST(Simulator, DeterministicInAnyOrder) {
 
 TEST(Simulator, GroundIsNotRepeated) {
   // Texture far apart must not correlate (no tiling, no mirroring): a patch and the same-sized
-  // patches 256 and 512 px away (tile period) differ.
+  // patches one and two tiles away (128 samples: 256 mosaic px) differ.
   SynthOptions o = ProceduralOptions();
   FlightSimulator sim(o);
   cv::Mat a, b, c;
   sim.ground().Fill(0, 0, 200, 200, &a);
-  sim.ground().Fill(256, 0, 200, 200, &b);
-  sim.ground().Fill(0, 512, 200, 200, &c);
+  sim.ground().Fill(128, 0, 200, 200, &b);
+  sim.ground().Fill(0, 256, 200, 200, &c);
   cv::Mat r;
   cv::matchTemplate(a, b, r, cv::TM_CCOEFF_NORMED);
   EXPECT_LT(r.at<float>(0, 0), 0.5);
@@ -283,9 +283,9 @@ TEST(Simulator, GroundIsNotRepeated) {
   EXPECT_LT(r.at<float>(0, 0), 0.5);
   // Seamless: a region read across a tile border equals the same region read in two halves.
   cv::Mat whole, left, right;
-  sim.ground().Fill(200, 10, 112, 50, &whole);
-  sim.ground().Fill(200, 10, 56, 50, &left);
-  sim.ground().Fill(256, 10, 56, 50, &right);
+  sim.ground().Fill(72, 10, 112, 50, &whole);
+  sim.ground().Fill(72, 10, 56, 50, &left);
+  sim.ground().Fill(128, 10, 56, 50, &right);
   EXPECT_EQ(cv::norm(whole(cv::Rect(0, 0, 56, 50)), left, cv::NORM_INF), 0.0);
   EXPECT_EQ(cv::norm(whole(cv::Rect(56, 0, 56, 50)), right, cv::NORM_INF), 0.0);
   // And smooth across the border: the jump there is like any other neighbour difference.

@@ -162,10 +162,14 @@ class IRMOSAIC_EXPORT SyntheticGround {
   // Origin the raster implies (its centre), or the options' origin when given.
   double origin_lat_deg() const;
   double origin_lon_deg() const;
+  // The ground is stored at a step of kSampleStep mosaic pixels: sample (j, i) is centred at
+  // mosaic pixel coordinates (kSampleStep * j + (kSampleStep - 1) / 2, likewise for i), and
+  // between samples the ground is their bilinear interpolation (as frames are rendered). Frame
+  // pixels are >= 1 mosaic px and the optics blur them, so finer ground detail would be lost.
+  static constexpr int kSampleStep = 2;
   // Must be called once before Fill, with the truth's frame and grid.
   void Attach(const LocalFrame& frame, const MosaicGrid& grid);
-  // Fills `out` (CV_32F) with mosaic pixels [col0, col0 + cols) x [row0, row0 + rows).
-  // Thread-safe.
+  // Fills `out` (CV_32F) with samples [col0, col0 + cols) x [row0, row0 + rows). Thread-safe.
   void Fill(int64_t col0, int64_t row0, int cols, int rows, cv::Mat* out) const;
   // Tiles generated so far (for the benchmark).
   int64_t tiles_generated() const;
