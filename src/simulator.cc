@@ -367,24 +367,29 @@ SimFrame FlightSimulator::Render(int index) const {
       s.noise ? static_cast<float>(full * std::pow(10.0, -s.noise_psnr_db / 20.0)) : 0.0f;
   uint64_t state = Stream(options_.seed, kNoise, static_cast<uint64_t>(index)).Bits() | 1;
   out.image.create(cam.height, cam.width, s.bit_depth == 8 ? CV_8U : CV_16U);
-  for (int y = 0; y < cam.height; ++y) {
-    const float* in = signal.ptr<float>(y);
-    const float* vig = vignetting_gain_.ptr<float>(y);
-    const float* col = column_offset_.ptr<float>(y);
-    for (int c = 0; c < cam.width; ++c) {
-      float v = in[c] * vig[c] * scale + base + col[c];
-      if (s.noise) {
-        state ^= state >> 12;
-        state ^= state << 25;
-        state ^= state >> 27;
-        v += sigma * gaussian_table_[(state * 0x2545F4914F6CDD1Dull) >> (64 - kTableBits)];
-      }
-      if (s.bit_depth == 8) {
-        out.image.ptr<uint8_t>(y)[c] = cv::saturate_cast<uint8_t>(v);
-      } else {
-        out.image.ptr<uint16_t>(y)[c] = cv::saturate_cast<uint16_t>(v);
+  // Specialised per output type and noise on/off so the inner loop has no branches.
+  auto digitise = [&]<typename T, bool kNoisy>() {
+    for (int y = 0; y < cam.height; ++y) {
+      const float* in = signal.ptr<float>(y);
+      const float* vig = vignetting_gain_.ptr<float>(y);
+      const float* col = column_offset_.ptr<float>(y);
+      T* dst = out.image.ptr<T>(y);
+      for (int c = 0; c < cam.width; ++c) {
+        float v = in[c] * vig[c] * scale + base + col[c];
+        if constexpr (kNoisy) {
+          state ^= state >> 12;
+          state ^= state << 25;
+          state ^= state >> 27;
+          v += sigma * gaussian_table_[(state * 0x2545F4914F6CDD1Dull) >> (64 - kTableBits)];
+        }
+        dst[c] = cv::saturate_cast<T>(v);
       }
     }
+  };
+  if (s.bit_depth == 8) {
+    s.noise ? digitise.operator()<uint8_t, true>() : digitise.operator()<uint8_t, false>();
+  } else {
+    s.noise ? digitise.operator()<uint16_t, true>() : digitise.operator()<uint16_t, false>();
   }
   for (const auto& [offset_px, stuck_high] : dead_pixels_) {
     const int y = offset_px / cam.width, x = offset_px % cam.width;
