@@ -4,6 +4,7 @@
 #include <fstream>
 #include <iomanip>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/videoio.hpp>
 
 #include "irmosaic/error.h"
 #include "irmosaic/evaluator.h"
@@ -39,14 +40,29 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
   const std::vector<int> params = ext == "tif" ? std::vector<int>{cv::IMWRITE_TIFF_COMPRESSION, 1}
                                                // Uncompressed: fast.
                                                : std::vector<int>{cv::IMWRITE_PNG_COMPRESSION, 1};
+  cv::VideoWriter video;
+  if (!options.video_path.empty()) {
+    const bool mjpg = options.video_path.size() > 9 &&
+                      options.video_path.substr(options.video_path.size() - 9) == ".mjpg.avi";
+    const int fourcc = mjpg ? cv::VideoWriter::fourcc('M', 'J', 'P', 'G')
+                            : cv::VideoWriter::fourcc('F', 'F', 'V', '1');
+    video.open(options.video_path, fourcc, options_.fps,
+               cv::Size(options_.camera.width, options_.camera.height), false);
+    if (!video.isOpened()) throw OutputError("cannot open the video " + options.video_path);
+  }
   for (int i = 0; i < frame_count(); ++i) {
     const SimFrame f = Render(i);
     char name[32];
     std::snprintf(name, sizeof(name), "frames/%06d.%s", i, ext.c_str());
-    if (!cv::imwrite((fs::path(dir) / name).string(), f.image, params)) {
+    if (options.write_frames && !cv::imwrite((fs::path(dir) / name).string(), f.image, params)) {
       throw OutputError("cannot write " + dir + "/" + name);
     }
-    list << i << "," << f.time_s << "," << name << "\n";
+    if (video.isOpened()) {
+      cv::Mat eight;
+      f.image.convertTo(eight, CV_8U, f.image.depth() == CV_16U ? 1.0 / 256.0 : 1.0);
+      video.write(eight);
+    }
+    if (options.write_frames) list << i << "," << f.time_s << "," << name << "\n";
     truth.frames.push_back({i, f.time_s, f.true_mosaic_from_image});
     if (options.progress) options.progress(i + 1, frame_count());
   }

@@ -182,6 +182,10 @@ class IRMOSAIC_EXPORT SyntheticGround {
 // Options of WriteFlight.
 struct WriteFlightOptions {
   std::string image_extension = "tif";  // "tif" or "png" (both lossless, 16 or 8 bit).
+  bool write_frames = true;             // False: POS, camera and truth only.
+  // Also write the frames as a video here (8-bit, lossless FFV1 in .mkv/.avi, or MJPG when
+  // the extension is .mjpg.avi); empty: no video. 16-bit frames keep their top 8 bits.
+  std::string video_path;
   // Called after each frame written with (frames done, total).
   std::function<void(int, int)> progress;
 };
