@@ -289,7 +289,9 @@ void SyntheticGround::Attach(const LocalFrame& frame, const MosaicGrid& grid) {
   const double ground_px_m =
       g.options.ground_m_per_source_px > 0 ? g.options.ground_m_per_source_px : g.source_px_m;
   g.plane_scale = g.source_px_m / ground_px_m;
-  g.source_level = LevelFor(ground_px_m / grid.gsd_m, 4.0);
+  // Two samples per raster pixel suffice on the coarse grid: the raster is bicubic there and
+  // the fine grid interpolates between its samples.
+  g.source_level = LevelFor(ground_px_m / grid.gsd_m, 2.0);
   if (g.earth_crs) {
     OGRSpatialReference plane_srs;
     plane_srs.importFromWkt(frame.CrsWkt().c_str());
