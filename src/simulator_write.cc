@@ -1,4 +1,5 @@
 // FlightSimulator::WriteFlight: a simulated flight on disk in the project's formats.
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -83,6 +84,23 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
     if (g.ok) pos_only.frames.push_back({i, i / options_.fps, g.mosaic_from_image});
   }
   pos_only.SaveJson((fs::path(dir) / "pos_only.json").string());
+
+  // The neighbours a pipeline registers, with their true base_from_template: the previous
+  // frame of the same sweep and the frame at the same angle in the previous sweep.
+  std::vector<PairRegistration> pairs;
+  const int n = options_.frames_per_sweep;
+  for (int i = 1; i < frame_count(); ++i) {
+    const Eigen::Matrix3d& template_h = truth.frames[i].mosaic_from_image;
+    if (i % n != 0) {
+      pairs.push_back({i - 1, i, truth.frames[i - 1].mosaic_from_image.inverse() * template_h});
+    }
+    for (int j = (i / n - 1) * n; j >= 0 && j < (i / n) * n; ++j) {
+      if (std::abs(SweepAngleDeg(j) - SweepAngleDeg(i)) < 1e-9) {
+        pairs.push_back({j, i, truth.frames[j].mosaic_from_image.inverse() * template_h});
+      }
+    }
+  }
+  SavePairsJson(pairs, (fs::path(dir) / "truth_pairs.json").string());
 }
 
 }  // namespace irmosaic

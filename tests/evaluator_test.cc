@@ -182,8 +182,9 @@ TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
                             testing::SamplePath("sample_flight/flight.json") +
                             " --frames 16 --out " + dir.string() + " 2>/dev/null";
   ASSERT_EQ(std::system(synth.c_str()), 0) << synth;
-  for (const char* name : {"frames/000015.tif", "frames.csv", "pos.csv", "camera.json",
-                           "truth.json", "pos_only.json", "flight.json", "true_pos.csv"}) {
+  for (const char* name :
+       {"frames/000015.tif", "frames.csv", "pos.csv", "camera.json", "truth.json", "pos_only.json",
+        "flight.json", "true_pos.csv", "truth_pairs.json"}) {
     EXPECT_TRUE(fs::exists(dir / name)) << name;
   }
   const Placements truth = Placements::LoadJson((dir / "truth.json").string());
@@ -203,6 +204,12 @@ TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
   EXPECT_GT(scores["runs"][1]["rmse_m"]["median"].get<double>(), 1.0);
   EXPECT_EQ(scores["runs"][1]["frames_scored"].get<int>(), 16);
   EXPECT_TRUE(fs::exists(dir / "eval.png"));
+  // The truth's pairs score 0 against the truth: 7 along each of 2 sweeps, 8 between them.
+  const std::vector<PairRegistration> pairs = LoadPairsJson((dir / "truth_pairs.json").string());
+  EXPECT_EQ(pairs.size(), 22u);
+  const PairsScore ps = Evaluator(truth).ScorePairs(pairs);
+  EXPECT_EQ(ps.pairs_scored, 22);
+  EXPECT_LT(ps.rmse_px.max, 1e-6);
   fs::remove_all(dir);
 }
 

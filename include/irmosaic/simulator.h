@@ -224,7 +224,8 @@ class IRMOSAIC_EXPORT FlightSimulator {
 
   // Writes frames/NNNNNN.<ext>, frames.csv (index,time_s,file), pos.csv (measured),
   // true_pos.csv, camera.json, truth.json (placements format), pos_only.json (placements from
-  // the logged POS alone: the baseline) and flight.json (the options).
+  // the logged POS alone: the baseline), truth_pairs.json (neighbour pairs along and between
+  // sweeps with their true base_from_template) and flight.json (the options).
   // Throws OutputError when the folder cannot be written.
   void WriteFlight(const std::string& dir, const WriteFlightOptions& options = {}) const;
 
