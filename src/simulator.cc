@@ -317,30 +317,36 @@ SimFrame FlightSimulator::Render(int index) const {
                      "frame " + std::to_string(index) + " covers an absurd ground area",
                      "lower the sweep angles or coarsen gsd_m");
   }
-  cv::Mat patch;
+  // Scratch reused across frames (per thread): no allocation or page faults once warm.
+  thread_local std::vector<float> patch_storage;
+  thread_local cv::Mat warped, blurred;
+  const size_t patch_size = static_cast<size_t>(span_x) * static_cast<size_t>(span_y);
+  if (patch_storage.size() < patch_size) patch_storage.resize(patch_size + patch_size / 2);
+  cv::Mat patch(static_cast<int>(span_y), static_cast<int>(span_x), CV_32F, patch_storage.data());
   ground_->Fill(col0, row0, static_cast<int>(span_x), static_cast<int>(span_y), &patch);
   // Patch sample coordinates of a mosaic pixel coordinate.
   Eigen::Matrix3d patch_from_mosaic = Eigen::Matrix3d::Identity();
   patch_from_mosaic(0, 0) = patch_from_mosaic(1, 1) = 1.0 / kStep;
   patch_from_mosaic(0, 2) = -sample_offset / kStep - static_cast<double>(col0);
   patch_from_mosaic(1, 2) = -sample_offset / kStep - static_cast<double>(row0);
-  cv::Mat signal;
   if (map_x.empty()) {
     const Eigen::Matrix3d m = patch_from_mosaic * h * image_from_render;
     cv::Matx33d mcv;
     for (int r = 0; r < 3; ++r) {
       for (int c = 0; c < 3; ++c) mcv(r, c) = m(r, c);
     }
-    cv::warpPerspective(patch, signal, mcv, cv::Size(rw, rh),
+    cv::warpPerspective(patch, warped, mcv, cv::Size(rw, rh),
                         cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
   } else {
     map_x.convertTo(map_x, CV_32F, 1.0 / kStep, patch_from_mosaic(0, 2));
     map_y.convertTo(map_y, CV_32F, 1.0 / kStep, patch_from_mosaic(1, 2));
-    cv::remap(patch, signal, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    cv::remap(patch, warped, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
   }
+  cv::Mat signal = warped;
   if (kx.size() > 1 || ky.size() > 1) {
-    cv::sepFilter2D(signal, signal, CV_32F, cv::Mat(kx), cv::Mat(ky), cv::Point(-1, -1), 0,
+    cv::sepFilter2D(warped, blurred, CV_32F, cv::Mat(kx), cv::Mat(ky), cv::Point(-1, -1), 0,
                     cv::BORDER_REPLICATE);
+    signal = blurred;
   }
   signal = signal(cv::Rect(margin, margin, cam.width, cam.height));
 
