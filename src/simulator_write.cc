@@ -36,6 +36,8 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
   truth.origin_lat_deg = frame_->origin_lat_deg();
   truth.origin_lon_deg = frame_->origin_lon_deg();
   truth.gsd_m = grid_.gsd_m;
+  truth.image_width = options_.camera.width;
+  truth.image_height = options_.camera.height;
   std::ofstream list((fs::path(dir) / "frames.csv").string());
   list << "index,time_s,file\n" << std::setprecision(17);
   const std::vector<int> params = ext == "tif" ? std::vector<int>{cv::IMWRITE_TIFF_COMPRESSION, 1}

@@ -189,6 +189,8 @@ TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
   }
   const Placements truth = Placements::LoadJson((dir / "truth.json").string());
   ASSERT_EQ(truth.frames.size(), 16u);
+  EXPECT_EQ(truth.image_width, 640);
+  EXPECT_EQ(truth.image_height, 512);
   // The written truth is the simulator's, and flight.json renders the same flight again.
   FlightSimulator again(SynthOptions::LoadJson((dir / "flight.json").string()));
   EXPECT_EQ(truth.frames[9].mosaic_from_image, again.TrueMosaicFromImage(9));
