@@ -100,14 +100,7 @@ FlightSimulator::FlightSimulator(SynthOptions options) : options_(std::move(opti
 
   const CameraModel& cam = options_.camera;
   const int n = options_.frames_per_sweep;
-  const double fov_x_deg = 2.0 * std::atan(cam.width / 2.0 / cam.fx) / kDeg;
-  // Consecutive frames of a sweep are also displaced along the track (by speed / fps), which
-  // costs a share (1 - between_sweep_overlap) / frames_per_sweep of the overlap area: the
-  // angular overlap is raised to compensate, so the area overlap meets the target.
-  const double along_shift = (1.0 - options_.between_sweep_overlap) / n;
-  const double angular_overlap = std::min(0.9, options_.along_sweep_overlap / (1.0 - along_shift));
-  sweep_step_deg_ =
-      options_.sweep_step_deg > 0 ? options_.sweep_step_deg : (1.0 - angular_overlap) * fov_x_deg;
+  sweep_step_deg_ = options_.SweepStepDeg();
   double min_abs_angle = 1e9;
   for (int k = 0; k < n; ++k) {
     min_abs_angle = std::min(

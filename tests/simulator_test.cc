@@ -294,6 +294,16 @@ TEST(Simulator, GroundIsNotRepeated) {
   EXPECT_LT(border_jump, 2.0 * typical);
 }
 
+TEST(Simulator, WideSweepIsAccepted) {
+  SynthOptions o = ProceduralOptions();
+  o.frames_per_sweep = 10;  // +-49 degrees: widest ray 60 degrees off nadir.
+  std::string why;
+  EXPECT_TRUE(o.IsValid(&why)) << why;
+  FlightSimulator sim(o);
+  EXPECT_NEAR(sim.summary().along_sweep_overlap, 0.25, 0.04);
+  EXPECT_NEAR(sim.summary().between_sweep_overlap_min, 0.15, 0.03);
+}
+
 TEST(Simulator, OptionsJsonRoundTripAndErrors) {
   SynthOptions o = ProceduralOptions();
   o.frame_count = 123;
@@ -310,7 +320,7 @@ TEST(Simulator, OptionsJsonRoundTripAndErrors) {
                                       "test"),
                InputError);
   SynthOptions bad = ProceduralOptions();
-  bad.frames_per_sweep = 16;  // Looks past 75 degrees off nadir.
+  bad.frames_per_sweep = 14;  // Looks past 75 degrees off nadir.
   EXPECT_THROW(FlightSimulator{bad}, InputError);
   bad = ProceduralOptions();
   bad.ground_path = "/nonexistent.tif";

@@ -115,6 +115,8 @@ struct SynthOptions {
 
   // False with a reason when an option is out of range.
   bool IsValid(std::string* error) const;
+  // The sweep step: sweep_step_deg, or the one along_sweep_overlap implies.
+  double SweepStepDeg() const;
   // JSON (docs/simulator.md); unknown keys are errors naming the key. Relative ground paths
   // are resolved against `base_dir`.
   static SynthOptions FromJson(const std::string& json_text, const std::string& source,
