@@ -160,13 +160,15 @@ FlightSimulator::FlightSimulator(SynthOptions options) : options_(std::move(opti
     for (float& v : gaussian_table_) v = static_cast<float>(rng.Normal());
   }
   if (cam.HasDistortion()) {
-    undistort_map_x_.create(cam.height, cam.width, CV_32F);
-    undistort_map_y_.create(cam.height, cam.width, CV_32F);
-    for (int y = 0; y < cam.height; ++y) {
-      for (int x = 0; x < cam.width; ++x) {
-        const Eigen::Vector2d u = cam.Undistort({x, y});
-        undistort_map_x_.at<float>(y, x) = static_cast<float>(u.x());
-        undistort_map_y_.at<float>(y, x) = static_cast<float>(u.y());
+    // Undistorted position of every render pixel (the image plus the blur margin), once.
+    const int m = RenderMargin();
+    undistort_map_x_.create(cam.height + 2 * m, cam.width + 2 * m, CV_64F);
+    undistort_map_y_.create(cam.height + 2 * m, cam.width + 2 * m, CV_64F);
+    for (int y = 0; y < undistort_map_x_.rows; ++y) {
+      for (int x = 0; x < undistort_map_x_.cols; ++x) {
+        const Eigen::Vector2d u = cam.Undistort({x - m, y - m});
+        undistort_map_x_.at<double>(y, x) = u.x();
+        undistort_map_y_.at<double>(y, x) = u.y();
       }
     }
   }
@@ -174,6 +176,13 @@ FlightSimulator::FlightSimulator(SynthOptions options) : options_(std::move(opti
 }
 
 FlightSimulator::~FlightSimulator() = default;
+
+int FlightSimulator::RenderMargin() const {
+  const SensorEffects& s = options_.sensor;
+  const size_t kx = BlurKernel(s.motion_blur ? s.motion_blur_px : 0.0, s.psf_sigma_px).size();
+  const size_t ky = BlurKernel(0.0, s.psf_sigma_px).size();
+  return static_cast<int>(std::max(kx, ky) / 2) + 1;
+}
 
 double FlightSimulator::SweepAngleDeg(int index) const {
   const int n = options_.frames_per_sweep;
@@ -267,7 +276,7 @@ SimFrame FlightSimulator::Render(int index) const {
   // Render with a margin so the blur at the image border sees real ground.
   const std::vector<float> kx = BlurKernel(s.motion_blur ? s.motion_blur_px : 0.0, s.psf_sigma_px);
   const std::vector<float> ky = BlurKernel(0.0, s.psf_sigma_px);
-  const int margin = static_cast<int>(std::max(kx.size(), ky.size()) / 2) + 1;
+  const int margin = RenderMargin();
   const int rw = cam.width + 2 * margin, rh = cam.height + 2 * margin;
   // Render pixel (xr, yr) is image pixel (xr - margin, yr - margin).
   Eigen::Matrix3d image_from_render = Eigen::Matrix3d::Identity();
@@ -289,7 +298,8 @@ SimFrame FlightSimulator::Render(int index) const {
     map_y.create(rh, rw, CV_32F);
     for (int y = 0; y < rh; ++y) {
       for (int x = 0; x < rw; ++x) {
-        const Eigen::Vector2d u = cam.Undistort({x - margin, y - margin});
+        const Eigen::Vector2d u(undistort_map_x_.at<double>(y, x),
+                                undistort_map_y_.at<double>(y, x));
         const Eigen::Vector2d m = ApplyHomography(h, u);
         map_x.at<float>(y, x) = static_cast<float>(m.x());
         map_y.at<float>(y, x) = static_cast<float>(m.y());

@@ -233,6 +233,7 @@ class IRMOSAIC_EXPORT FlightSimulator {
 
  private:
   double SweepAngleDeg(int index) const;
+  int RenderMargin() const;  // Pixels rendered around the image so the blur sees real ground.
   FlightSummary Summarise() const;
 
   SynthOptions options_;
@@ -249,7 +250,8 @@ class IRMOSAIC_EXPORT FlightSimulator {
   cv::Mat vignetting_gain_;                       // CV_32F, multiplies the signal.
   cv::Mat column_offset_;                         // CV_32F, full frame, counts.
   std::vector<std::pair<int, int>> dead_pixels_;  // (pixel offset, stuck value 0 or 1).
-  cv::Mat undistort_map_x_, undistort_map_y_;     // Only with lens distortion.
+  // Only with lens distortion: undistorted pixel of each render pixel (CV_64F).
+  cv::Mat undistort_map_x_, undistort_map_y_;
   std::vector<float> gaussian_table_;             // Unit normal samples for the noise.
 };
 
