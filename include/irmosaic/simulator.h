@@ -252,7 +252,7 @@ class IRMOSAIC_EXPORT FlightSimulator {
   std::vector<std::pair<int, int>> dead_pixels_;  // (pixel offset, stuck value 0 or 1).
   // Only with lens distortion: undistorted pixel of each render pixel (CV_64F).
   cv::Mat undistort_map_x_, undistort_map_y_;
-  std::vector<float> gaussian_table_;             // Unit normal samples for the noise.
+  std::vector<float> gaussian_table_;  // Unit normal samples for the noise.
 };
 
 }  // namespace irmosaic
