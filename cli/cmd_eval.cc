@@ -25,8 +25,8 @@ int RunEval(int argc, char** argv) {
   args.Option("--plot", "write the RMSE-vs-index plot here (PNG)", "", "FILE");
   args.Option("--title", "plot title", "", "TEXT");
   args.Option("--grid", "points per image side", "9", "N");
-  args.Option("--width", "image width the placements refer to", "640", "PX");
-  args.Option("--height", "image height the placements refer to", "512", "PX");
+  args.Option("--width", "image width (default: the truth's image_width, else 640)", "", "PX");
+  args.Option("--height", "image height (default: the truth's image_height, else 512)", "", "PX");
   // Runs are any number of positional files; the parser takes options only.
   const std::set<std::string> with_value = {"--truth", "--pairs", "--json",  "--plot",
                                             "--title", "--grid",  "--width", "--height"};
@@ -47,8 +47,8 @@ int RunEval(int argc, char** argv) {
   }
   EvaluatorOptions options;
   options.grid = args.GetInt("--grid");
-  options.width = args.GetInt("--width");
-  options.height = args.GetInt("--height");
+  if (!args.Get("--width").empty()) options.width = args.GetInt("--width");
+  if (!args.Get("--height").empty()) options.height = args.GetInt("--height");
   const Evaluator evaluator(Placements::LoadJson(args.Get("--truth")), options);
   std::vector<PlacementScore> scores;
   std::cout << std::fixed << std::setprecision(3);

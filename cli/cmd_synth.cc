@@ -23,6 +23,9 @@ int RunSynth(int argc, char** argv) {
   args.Option("--seed", "random seed (overrides the config)", "", "N");
   args.Option("--bit-depth", "16 or 8 (overrides the config)", "", "BITS");
   args.Option("--format", "frame files: tif or png", "tif", "EXT");
+  args.Option("--video", "also write an 8-bit video (.mkv/.avi: FFV1, .mjpg.avi: MJPG)", "",
+              "FILE");
+  args.Flag("--no-frames", "write POS, camera and truth only (no image files)");
   int exit_code = 0;
   if (!args.Parse(argc, argv, &exit_code)) return exit_code;
 
@@ -45,6 +48,8 @@ int RunSynth(int argc, char** argv) {
             << " % (min " << 100 * s.between_sweep_overlap_min << " %)\n";
   WriteFlightOptions write;
   write.image_extension = args.Get("--format");
+  write.video_path = args.Get("--video");
+  write.write_frames = !args.Has("--no-frames");
   write.progress = [](int done, int total) {
     if (done % 10 == 0 || done == total) {
       std::cerr << "\rsynth: frame " << done << "/" << total << std::flush;

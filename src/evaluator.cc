@@ -91,6 +91,11 @@ Placements Placements::LoadJson(const std::string& path) {
   p.origin_lon_deg = Number(doc.at("origin"), "lon_deg", path, "origin.");
   p.gsd_m = Number(doc, "gsd_m", path, "");
   if (!(p.gsd_m > 0)) throw InputError({path, 0, 0, "gsd_m"}, "gsd_m must be positive", "fix it");
+  if (doc.contains("image_width"))
+    p.image_width = static_cast<int>(Number(doc, "image_width", path, ""));
+  if (doc.contains("image_height")) {
+    p.image_height = static_cast<int>(Number(doc, "image_height", path, ""));
+  }
   if (!doc.contains("frames") || !doc.at("frames").is_array()) {
     throw InputError({path, 0, 0, "frames"}, "missing 'frames' array", "add the frames");
   }
@@ -114,9 +119,13 @@ void Placements::SaveJson(const std::string& path) const {
                            {"time_s", f.time_s},
                            {"mosaic_from_image", MatrixJson(f.mosaic_from_image)}});
   }
-  const json doc = {{"origin", {{"lat_deg", origin_lat_deg}, {"lon_deg", origin_lon_deg}}},
-                    {"gsd_m", gsd_m},
-                    {"frames", frames_json}};
+  json doc = {{"origin", {{"lat_deg", origin_lat_deg}, {"lon_deg", origin_lon_deg}}},
+              {"gsd_m", gsd_m},
+              {"frames", frames_json}};
+  if (image_width > 0 && image_height > 0) {
+    doc["image_width"] = image_width;
+    doc["image_height"] = image_height;
+  }
   std::ofstream out(path);
   out << std::setprecision(17) << doc.dump(1) << "\n";
   if (!out) throw OutputError("cannot write the placements file " + path);
@@ -182,6 +191,11 @@ ErrorStats ComputeErrorStats(std::vector<double> values) {
 
 Evaluator::Evaluator(Placements truth, EvaluatorOptions options)
     : truth_(std::move(truth)), options_(options) {
+  if (options_.width <= 0 || options_.height <= 0) {
+    const bool known = truth_.image_width > 0 && truth_.image_height > 0;
+    options_.width = known ? truth_.image_width : 640;
+    options_.height = known ? truth_.image_height : 512;
+  }
   for (size_t k = 0; k < truth_.frames.size(); ++k) truth_by_index_[truth_.frames[k].index] = k;
 }
 

@@ -17,9 +17,12 @@
 namespace irmosaic {
 namespace {
 
-constexpr int kTile = 256;            // Tile side, mosaic pixels.
-constexpr int kLevels[] = {8, 2, 1};  // Grid steps the tile is synthesised on, coarse to fine.
-constexpr double kSourceStd = 0.15;   // The raster is normalised to mean 0.5 and this std.
+constexpr int kTile = 256;  // Tile side, mosaic pixels.
+constexpr int kStep = SyntheticGround::kSampleStep;
+constexpr int kTileSamples = kTile / kStep;  // Tile side in stored samples.
+// Grid steps (mosaic px) a tile is synthesised on, coarse to fine; the last is the stored one.
+constexpr int kLevels[] = {8, kStep};
+constexpr double kSourceStd = 0.15;  // The raster is normalised to mean 0.5 and this std.
 constexpr double kBackgroundStd = 0.15;
 
 uint64_t SplitMix(uint64_t x) {
@@ -174,6 +177,10 @@ void SyntheticGround::Impl::LoadRaster(const std::string& path) {
   cv::Mat gray(h, w, CV_32F, cv::Scalar(0)), valid(h, w, CV_8U, cv::Scalar(255));
   const int bands = ds->GetRasterCount();
   std::vector<int> colour;
+  // A pixel is nodata only when every band used is at its nodata value: one dark band (water
+  // in the near infrared) is data.
+  cv::Mat nodata_bands(h, w, CV_8U, cv::Scalar(0));
+  int bands_with_nodata = 0;
   for (int b = 1; b <= bands; ++b) {
     GDALRasterBand* band = ds->GetRasterBand(b);
     cv::Mat data(h, w, CV_32F);
@@ -184,13 +191,19 @@ void SyntheticGround::Impl::LoadRaster(const std::string& path) {
       valid.setTo(0, data <= 0);
       continue;
     }
+    if (colour.size() >= 3) continue;
+    colour.push_back(b);
+    gray += data;
     int has_nodata = 0;
     const double nodata = band->GetNoDataValue(&has_nodata);
-    if (has_nodata) valid.setTo(0, data == nodata);
-    if (colour.size() < 3) {
-      colour.push_back(b);
-      gray += data;
+    if (has_nodata) {
+      ++bands_with_nodata;
+      cv::Mat at_nodata = data == nodata;
+      nodata_bands += at_nodata / 255;
     }
+  }
+  if (bands_with_nodata > 0 && bands_with_nodata == static_cast<int>(colour.size())) {
+    valid.setTo(0, nodata_bands == bands_with_nodata);
   }
   if (colour.empty())
     throw InputError(where, "the raster has no data band", "give a gray/RGB raster");
@@ -248,7 +261,8 @@ SyntheticGround::SyntheticGround(const SynthOptions& options) : impl_(std::make_
     g.lat0 = options.origin_lat_deg;
     g.lon0 = options.origin_lon_deg;
   }
-  g.max_tiles = std::max<size_t>(16, options.ground_cache_mb * 1024 * 1024 / (kTile * kTile * 4));
+  g.max_tiles = std::max<size_t>(
+      16, options.ground_cache_mb * 1024 * 1024 / (kTileSamples * kTileSamples * 4));
 }
 
 SyntheticGround::~SyntheticGround() = default;
@@ -275,7 +289,9 @@ void SyntheticGround::Attach(const LocalFrame& frame, const MosaicGrid& grid) {
   const double ground_px_m =
       g.options.ground_m_per_source_px > 0 ? g.options.ground_m_per_source_px : g.source_px_m;
   g.plane_scale = g.source_px_m / ground_px_m;
-  g.source_level = LevelFor(ground_px_m / grid.gsd_m, 4.0);
+  // Two samples per raster pixel suffice on the coarse grid: the raster is bicubic there and
+  // the fine grid interpolates between its samples.
+  g.source_level = LevelFor(ground_px_m / grid.gsd_m, 2.0);
   if (g.earth_crs) {
     OGRSpatialReference plane_srs;
     plane_srs.importFromWkt(frame.CrsWkt().c_str());
@@ -353,24 +369,24 @@ cv::Mat SyntheticGround::Impl::Generate(int64_t tile_col, int64_t tile_row) cons
     for (const Octave& o : detail) {
       if (o.level == step) AddOctave(o, oc, orow, step, &cur);
     }
-    if (step == 1 && pixel_texture_std > 0) {
-      // Finest texture: independent per mosaic pixel, hashed from its global position.
+    if (step == kStep && pixel_texture_std > 0) {
+      // Finest texture: independent per stored sample, hashed from its global index.
       const uint64_t salt = SplitMix(options.seed * 0x2545F4914F6CDD1Dull + 77);
       const float amp = static_cast<float>(pixel_texture_std * std::sqrt(3.0));
       for (int i = 0; i < n; ++i) {
         float* row = cur.ptr<float>(i);
-        const uint64_t hy = static_cast<uint64_t>(r0 + i - 1) * 0xD6E8FEB86659FD93ull;
+        const uint64_t hy = static_cast<uint64_t>(r0 / kStep + i - 1) * 0xD6E8FEB86659FD93ull;
         for (int j = 0; j < n; ++j) {
-          row[j] +=
-              amp * HashUniform(SplitMix(
-                        salt ^ hy ^ (static_cast<uint64_t>(c0 + j - 1) * 0x9E3779B97F4A7C15ull)));
+          row[j] += amp * HashUniform(SplitMix(
+                              salt ^ hy ^
+                              (static_cast<uint64_t>(c0 / kStep + j - 1) * 0x9E3779B97F4A7C15ull)));
         }
       }
     }
     acc = cur;
     prev_step = step;
   }
-  return acc(cv::Rect(1, 1, kTile, kTile)).clone();
+  return acc(cv::Rect(1, 1, kTileSamples, kTileSamples)).clone();
 }
 
 const cv::Mat& SyntheticGround::Impl::Tile(int64_t tile_col, int64_t tile_row) const {
@@ -392,14 +408,15 @@ const cv::Mat& SyntheticGround::Impl::Tile(int64_t tile_col, int64_t tile_row) c
 
 void SyntheticGround::Fill(int64_t col0, int64_t row0, int cols, int rows, cv::Mat* out) const {
   out->create(rows, cols, CV_32F);
-  auto floor_div = [](int64_t a) { return a >= 0 ? a / kTile : -((-a + kTile - 1) / kTile); };
+  constexpr int64_t n = kTileSamples;
+  auto floor_div = [](int64_t a) { return a >= 0 ? a / n : -((-a + n - 1) / n); };
   std::lock_guard<std::mutex> lock(impl_->mutex);
-  for (int64_t tr = floor_div(row0); tr * kTile < row0 + rows; ++tr) {
-    for (int64_t tc = floor_div(col0); tc * kTile < col0 + cols; ++tc) {
+  for (int64_t tr = floor_div(row0); tr * n < row0 + rows; ++tr) {
+    for (int64_t tc = floor_div(col0); tc * n < col0 + cols; ++tc) {
       const cv::Mat& tile = impl_->Tile(tc, tr);
-      const int64_t x0 = std::max(col0, tc * kTile), x1 = std::min(col0 + cols, (tc + 1) * kTile);
-      const int64_t y0 = std::max(row0, tr * kTile), y1 = std::min(row0 + rows, (tr + 1) * kTile);
-      const cv::Rect from(static_cast<int>(x0 - tc * kTile), static_cast<int>(y0 - tr * kTile),
+      const int64_t x0 = std::max(col0, tc * n), x1 = std::min(col0 + cols, (tc + 1) * n);
+      const int64_t y0 = std::max(row0, tr * n), y1 = std::min(row0 + rows, (tr + 1) * n);
+      const cv::Rect from(static_cast<int>(x0 - tc * n), static_cast<int>(y0 - tr * n),
                           static_cast<int>(x1 - x0), static_cast<int>(y1 - y0));
       const cv::Rect to(static_cast<int>(x0 - col0), static_cast<int>(y0 - row0), from.width,
                         from.height);

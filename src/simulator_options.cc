@@ -202,10 +202,7 @@ bool SynthOptions::IsValid(std::string* error) const {
   const double half_fov_deg = std::atan(std::hypot(camera.width, camera.height) / 2.0 /
                                         std::max(1e-9, std::min(camera.fx, camera.fy))) *
                               180.0 / M_PI;
-  const double step =
-      sweep_step_deg > 0
-          ? sweep_step_deg
-          : 2.0 * std::atan(camera.width / 2.0 / std::max(1e-9, camera.fx)) * 180.0 / M_PI;
+  const double step = SweepStepDeg();
   const double widest = std::abs(sweep_centre_deg) + (frames_per_sweep - 1) / 2.0 * step +
                         half_fov_deg + std::abs(attitude_wobble_deg) +
                         std::abs(attitude_bias_deg.x());
@@ -215,6 +212,18 @@ bool SynthOptions::IsValid(std::string* error) const {
     return fail(why.str());
   }
   return true;
+}
+
+double SynthOptions::SweepStepDeg() const {
+  if (sweep_step_deg > 0) return sweep_step_deg;
+  const double fov_x_deg =
+      2.0 * std::atan(camera.width / 2.0 / std::max(1e-9, camera.fx)) * 180.0 / M_PI;
+  // Consecutive frames of a sweep are also displaced along the track (by speed / fps), which
+  // costs a share (1 - between_sweep_overlap) / frames_per_sweep of the overlap area: the
+  // angular overlap is raised to compensate, so the area overlap meets the target.
+  const double along_shift = (1.0 - between_sweep_overlap) / std::max(1, frames_per_sweep);
+  const double angular_overlap = std::min(0.9, along_sweep_overlap / (1.0 - along_shift));
+  return (1.0 - angular_overlap) * fov_x_deg;
 }
 
 SynthOptions SynthOptions::FromJson(const std::string& json_text, const std::string& source,

@@ -1,9 +1,11 @@
 // FlightSimulator::WriteFlight: a simulated flight on disk in the project's formats.
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/videoio.hpp>
 
 #include "irmosaic/error.h"
 #include "irmosaic/evaluator.h"
@@ -34,19 +36,36 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
   truth.origin_lat_deg = frame_->origin_lat_deg();
   truth.origin_lon_deg = frame_->origin_lon_deg();
   truth.gsd_m = grid_.gsd_m;
+  truth.image_width = options_.camera.width;
+  truth.image_height = options_.camera.height;
   std::ofstream list((fs::path(dir) / "frames.csv").string());
   list << "index,time_s,file\n" << std::setprecision(17);
   const std::vector<int> params = ext == "tif" ? std::vector<int>{cv::IMWRITE_TIFF_COMPRESSION, 1}
                                                // Uncompressed: fast.
                                                : std::vector<int>{cv::IMWRITE_PNG_COMPRESSION, 1};
+  cv::VideoWriter video;
+  if (!options.video_path.empty()) {
+    const bool mjpg = options.video_path.size() > 9 &&
+                      options.video_path.substr(options.video_path.size() - 9) == ".mjpg.avi";
+    const int fourcc = mjpg ? cv::VideoWriter::fourcc('M', 'J', 'P', 'G')
+                            : cv::VideoWriter::fourcc('F', 'F', 'V', '1');
+    video.open(options.video_path, fourcc, options_.fps,
+               cv::Size(options_.camera.width, options_.camera.height), false);
+    if (!video.isOpened()) throw OutputError("cannot open the video " + options.video_path);
+  }
   for (int i = 0; i < frame_count(); ++i) {
     const SimFrame f = Render(i);
     char name[32];
     std::snprintf(name, sizeof(name), "frames/%06d.%s", i, ext.c_str());
-    if (!cv::imwrite((fs::path(dir) / name).string(), f.image, params)) {
+    if (options.write_frames && !cv::imwrite((fs::path(dir) / name).string(), f.image, params)) {
       throw OutputError("cannot write " + dir + "/" + name);
     }
-    list << i << "," << f.time_s << "," << name << "\n";
+    if (video.isOpened()) {
+      cv::Mat eight;
+      f.image.convertTo(eight, CV_8U, f.image.depth() == CV_16U ? 1.0 / 256.0 : 1.0);
+      video.write(eight);
+    }
+    if (options.write_frames) list << i << "," << f.time_s << "," << name << "\n";
     truth.frames.push_back({i, f.time_s, f.true_mosaic_from_image});
     if (options.progress) options.progress(i + 1, frame_count());
   }
@@ -67,6 +86,23 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
     if (g.ok) pos_only.frames.push_back({i, i / options_.fps, g.mosaic_from_image});
   }
   pos_only.SaveJson((fs::path(dir) / "pos_only.json").string());
+
+  // The neighbours a pipeline registers, with their true base_from_template: the previous
+  // frame of the same sweep and the frame at the same angle in the previous sweep.
+  std::vector<PairRegistration> pairs;
+  const int n = options_.frames_per_sweep;
+  for (int i = 1; i < frame_count(); ++i) {
+    const Eigen::Matrix3d& template_h = truth.frames[i].mosaic_from_image;
+    if (i % n != 0) {
+      pairs.push_back({i - 1, i, truth.frames[i - 1].mosaic_from_image.inverse() * template_h});
+    }
+    for (int j = (i / n - 1) * n; j >= 0 && j < (i / n) * n; ++j) {
+      if (std::abs(SweepAngleDeg(j) - SweepAngleDeg(i)) < 1e-9) {
+        pairs.push_back({j, i, truth.frames[j].mosaic_from_image.inverse() * template_h});
+      }
+    }
+  }
+  SavePairsJson(pairs, (fs::path(dir) / "truth_pairs.json").string());
 }
 
 }  // namespace irmosaic

@@ -3,12 +3,15 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
 #include "irmosaic/simulator.h"
+#include "test_data.h"
 
 namespace irmosaic {
 namespace {
@@ -162,6 +165,54 @@ TEST(Evaluator, Statistics) {
   EXPECT_DOUBLE_EQ(s.max, 4.0);
   EXPECT_DOUBLE_EQ(s.share_within_1px, 0.5);
   EXPECT_NEAR(s.p95, 2.0 + 0.85 * 2.0, 1e-12);
+}
+
+}  // namespace
+}  // namespace irmosaic
+
+namespace irmosaic {
+namespace {
+
+// End to end through the command line: `synth` renders the bundled sample, `eval` scores the
+// POS-only placements and the truth itself.
+TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
+  const fs::path dir = fs::temp_directory_path() / ("irmosaic_cli_" + std::to_string(::getpid()));
+  const std::string cli = testing::CliPath();
+  const std::string synth = cli + " synth --config " +
+                            testing::SamplePath("sample_flight/flight.json") +
+                            " --frames 16 --out " + dir.string() + " 2>/dev/null";
+  ASSERT_EQ(std::system(synth.c_str()), 0) << synth;
+  for (const char* name :
+       {"frames/000015.tif", "frames.csv", "pos.csv", "camera.json", "truth.json", "pos_only.json",
+        "flight.json", "true_pos.csv", "truth_pairs.json"}) {
+    EXPECT_TRUE(fs::exists(dir / name)) << name;
+  }
+  const Placements truth = Placements::LoadJson((dir / "truth.json").string());
+  ASSERT_EQ(truth.frames.size(), 16u);
+  EXPECT_EQ(truth.image_width, 640);
+  EXPECT_EQ(truth.image_height, 512);
+  // The written truth is the simulator's, and flight.json renders the same flight again.
+  FlightSimulator again(SynthOptions::LoadJson((dir / "flight.json").string()));
+  EXPECT_EQ(truth.frames[9].mosaic_from_image, again.TrueMosaicFromImage(9));
+  const std::string eval = cli + " eval --truth " + (dir / "truth.json").string() + " " +
+                           (dir / "truth.json").string() + " " + (dir / "pos_only.json").string() +
+                           " --json " + (dir / "eval.json").string() + " --plot " +
+                           (dir / "eval.png").string() + " > /dev/null";
+  ASSERT_EQ(std::system(eval.c_str()), 0) << eval;
+  std::ifstream in(dir / "eval.json");
+  const nlohmann::json scores = nlohmann::json::parse(in);
+  EXPECT_EQ(scores["runs"][0]["rmse_px"]["max"].get<double>(), 0.0);
+  // POS errors of 2 m and 0.3 degree at 600 m: the POS-only placement is metres off.
+  EXPECT_GT(scores["runs"][1]["rmse_m"]["median"].get<double>(), 1.0);
+  EXPECT_EQ(scores["runs"][1]["frames_scored"].get<int>(), 16);
+  EXPECT_TRUE(fs::exists(dir / "eval.png"));
+  // The truth's pairs score 0 against the truth: 7 along each of 2 sweeps, 8 between them.
+  const std::vector<PairRegistration> pairs = LoadPairsJson((dir / "truth_pairs.json").string());
+  EXPECT_EQ(pairs.size(), 22u);
+  const PairsScore ps = Evaluator(truth).ScorePairs(pairs);
+  EXPECT_EQ(ps.pairs_scored, 22);
+  EXPECT_LT(ps.rmse_px.max, 1e-6);
+  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -34,6 +34,10 @@ struct IRMOSAIC_EXPORT Placements {
   double origin_lat_deg = 0.0;
   double origin_lon_deg = 0.0;
   double gsd_m = 0.5;
+  // Image size the homographies refer to, when the file records it ("image_width",
+  // "image_height", optional); 0: unknown.
+  int image_width = 0;
+  int image_height = 0;
   std::vector<Placement> frames;
 
   // Reads the JSON format above; throws InputError naming the file and field.
@@ -57,9 +61,9 @@ IRMOSAIC_EXPORT void SavePairsJson(const std::vector<PairHomography>& pairs,
 
 struct EvaluatorOptions {
   int grid = 9;  // Points per image side at which placements are compared.
-  // Image size the placements refer to (the truth's camera).
-  int width = 640;
-  int height = 512;
+  // Image size the placements refer to; 0: the truth file's image_width/height, else 640x512.
+  int width = 0;
+  int height = 0;
 };
 
 // Summary statistics of a list of errors.

@@ -115,6 +115,8 @@ struct SynthOptions {
 
   // False with a reason when an option is out of range.
   bool IsValid(std::string* error) const;
+  // The sweep step: sweep_step_deg, or the one along_sweep_overlap implies.
+  double SweepStepDeg() const;
   // JSON (docs/simulator.md); unknown keys are errors naming the key. Relative ground paths
   // are resolved against `base_dir`.
   static SynthOptions FromJson(const std::string& json_text, const std::string& source,
@@ -162,10 +164,14 @@ class IRMOSAIC_EXPORT SyntheticGround {
   // Origin the raster implies (its centre), or the options' origin when given.
   double origin_lat_deg() const;
   double origin_lon_deg() const;
+  // The ground is stored at a step of kSampleStep mosaic pixels: sample (j, i) is centred at
+  // mosaic pixel coordinates (kSampleStep * j + (kSampleStep - 1) / 2, likewise for i), and
+  // between samples the ground is their bilinear interpolation (as frames are rendered). Frame
+  // pixels are >= 1 mosaic px and the optics blur them, so finer ground detail would be lost.
+  static constexpr int kSampleStep = 2;
   // Must be called once before Fill, with the truth's frame and grid.
   void Attach(const LocalFrame& frame, const MosaicGrid& grid);
-  // Fills `out` (CV_32F) with mosaic pixels [col0, col0 + cols) x [row0, row0 + rows).
-  // Thread-safe.
+  // Fills `out` (CV_32F) with samples [col0, col0 + cols) x [row0, row0 + rows). Thread-safe.
   void Fill(int64_t col0, int64_t row0, int cols, int rows, cv::Mat* out) const;
   // Tiles generated so far (for the benchmark).
   int64_t tiles_generated() const;
@@ -178,6 +184,10 @@ class IRMOSAIC_EXPORT SyntheticGround {
 // Options of WriteFlight.
 struct WriteFlightOptions {
   std::string image_extension = "tif";  // "tif" or "png" (both lossless, 16 or 8 bit).
+  bool write_frames = true;             // False: POS, camera and truth only.
+  // Also write the frames as a video here (8-bit, lossless FFV1 in .mkv/.avi, or MJPG when
+  // the extension is .mjpg.avi); empty: no video. 16-bit frames keep their top 8 bits.
+  std::string video_path;
   // Called after each frame written with (frames done, total).
   std::function<void(int, int)> progress;
 };
@@ -216,12 +226,14 @@ class IRMOSAIC_EXPORT FlightSimulator {
 
   // Writes frames/NNNNNN.<ext>, frames.csv (index,time_s,file), pos.csv (measured),
   // true_pos.csv, camera.json, truth.json (placements format), pos_only.json (placements from
-  // the logged POS alone: the baseline) and flight.json (the options).
+  // the logged POS alone: the baseline), truth_pairs.json (neighbour pairs along and between
+  // sweeps with their true base_from_template) and flight.json (the options).
   // Throws OutputError when the folder cannot be written.
   void WriteFlight(const std::string& dir, const WriteFlightOptions& options = {}) const;
 
  private:
   double SweepAngleDeg(int index) const;
+  int RenderMargin() const;  // Pixels rendered around the image so the blur sees real ground.
   FlightSummary Summarise() const;
 
   SynthOptions options_;
@@ -238,8 +250,9 @@ class IRMOSAIC_EXPORT FlightSimulator {
   cv::Mat vignetting_gain_;                       // CV_32F, multiplies the signal.
   cv::Mat column_offset_;                         // CV_32F, full frame, counts.
   std::vector<std::pair<int, int>> dead_pixels_;  // (pixel offset, stuck value 0 or 1).
-  cv::Mat undistort_map_x_, undistort_map_y_;     // Only with lens distortion.
-  std::vector<float> gaussian_table_;             // Unit normal samples for the noise.
+  // Only with lens distortion: undistorted pixel of each render pixel (CV_64F).
+  cv::Mat undistort_map_x_, undistort_map_y_;
+  std::vector<float> gaussian_table_;  // Unit normal samples for the noise.
 };
 
 }  // namespace irmosaic
