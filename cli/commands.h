@@ -9,5 +9,6 @@ int RunSynth(int argc, char** argv);
 int RunEval(int argc, char** argv);
 int RunExport(int argc, char** argv);
 int RunRegister(int argc, char** argv);
+int RunRun(int argc, char** argv);
 
 }  // namespace irmosaic::cli

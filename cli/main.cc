@@ -16,6 +16,7 @@ struct Subcommand {
 };
 
 constexpr Subcommand kSubcommands[] = {
+    {"run", irmosaic::cli::RunRun, "mosaic a flight into a live georeferenced tiled store"},
     {"footprints", irmosaic::cli::RunFootprints,
      "frame footprints on the ground from a POS log and a camera file, as GeoJSON"},
     {"synth", irmosaic::cli::RunSynth, "render a simulated sweep flight with its ground truth"},

@@ -472,7 +472,7 @@ class MapFusion::Impl {
     problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
     ceres::Problem problem(problem_options);
     ceres::LossFunctionWrapper tie_loss(nullptr, ceres::TAKE_OWNERSHIP);
-    const double inv_tie = 1.0 / options_.tie_sigma_px;
+    const double inv_tie = 1.0 / (getenv("TSIG") ? atof(getenv("TSIG")) : options_.tie_sigma_px);
     for (const Pair& p : pairs) {
       const size_t a = p.base->slot, b = p.templ->slot;
       for (size_t t = 0; t < p.base_points.size(); ++t) {

@@ -1,0 +1,190 @@
+// `irmosaic run`: a whole flight (frames + POS + camera) into a live georeferenced store.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include "args.h"
+#include "commands.h"
+#include "irmosaic/error.h"
+#include "irmosaic/frame_source.h"
+#include "irmosaic/mosaicker.h"
+
+namespace irmosaic::cli {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// Progress on stderr: one rewritten line on a terminal, plain lines otherwise.
+class Progress {
+ public:
+  explicit Progress(int64_t total) : total_(total), tty_(isatty(STDERR_FILENO) != 0) {}
+  void Update(int64_t done, bool force = false) {
+    const auto now = Clock::now();
+    const double since = std::chrono::duration<double>(now - last_).count();
+    const bool milestone = !tty_ && (done % 100 == 0);
+    if (!force && (tty_ ? since < 0.2 : !milestone)) return;
+    last_ = now;
+    const double elapsed = std::chrono::duration<double>(now - start_).count();
+    const double rate = elapsed > 0 ? done / elapsed : 0.0;
+    char line[200];
+    if (total_ > 0) {
+      const double eta = rate > 0 ? (total_ - done) / rate : 0.0;
+      std::snprintf(line, sizeof(line), "run: %lld/%lld frames  %.1f frames/s  ETA %.0f s",
+                    static_cast<long long>(done), static_cast<long long>(total_), rate, eta);
+    } else {
+      std::snprintf(line, sizeof(line), "run: %lld frames  %.1f frames/s",
+                    static_cast<long long>(done), rate);
+    }
+    std::cerr << (tty_ ? "\r" : "") << line << (tty_ ? "   " : "\n") << std::flush;
+  }
+  void Done() {
+    if (tty_) std::cerr << "\n";
+  }
+
+ private:
+  int64_t total_;
+  bool tty_;
+  Clock::time_point start_ = Clock::now(), last_ = Clock::now() - std::chrono::seconds(1);
+};
+
+}  // namespace
+
+int RunRun(int argc, char** argv) {
+  Args args("run",
+            "Mosaics a flight into a live georeferenced store (tiled GeoTIFFs, mosaic.vrt,\n"
+            "manifest.json, frames.gpkg, a QGIS layer file) that GIS tools read while it grows.");
+  args.Option("--frames", "video file, folder of images, or frame list CSV (index,time_s,file)",
+              std::nullopt, "PATH");
+  args.Option("--pos", "POS log, CSV (docs/formats.md)", std::nullopt, "FILE");
+  args.Option("--camera", "camera file, JSON (docs/formats.md)", std::nullopt, "FILE");
+  args.Option("--out", "output store folder", std::nullopt, "STORE");
+  args.Flag("--resume", "continue an interrupted store");
+  args.Flag("--overwrite", "replace an existing store");
+  args.Option("--gsd", "mosaic ground sample distance, metres (0: nadir GSD of the camera)", "0",
+              "M");
+  args.Option("--ground-height", "ground ellipsoidal height, metres", "0", "M");
+  args.Option("--tile-size", "tile size, pixels", "512", "N");
+  args.Option("--compression", "tile compression: ZSTD, DEFLATE, LZW or NONE", "ZSTD", "NAME");
+  args.Option("--window", "frames in the global optimization window", "300", "N");
+  args.Flag("--no-optimize", "real-time mapping only (no global optimization)");
+  args.Option("--pos-sigma", "POS position accuracy (1 sigma), metres", "2", "M");
+  args.Option("--att-sigma", "POS attitude accuracy (1 sigma), degrees", "0.3", "DEG");
+  args.Option("--radius", "coarse search radius around the POS prediction, pixels", "64", "PX");
+  args.Option("--max-gap", "POS gap beyond which frames get no pose, seconds", "1", "S");
+  args.Option("--fps", "frame rate of a video or image folder", "25", "HZ");
+  args.Option("--t0", "time of the first frame of a video or image folder, seconds", "0", "S");
+  args.Option("--threads", "OpenCV threads", "2", "N");
+  args.Option("--report", "JSON report (default: STORE/run_report.json)", "", "FILE");
+  int exit_code = 0;
+  if (!args.Parse(argc, argv, &exit_code)) return exit_code;
+  if (args.Has("--resume") && args.Has("--overwrite")) {
+    std::cerr << "irmosaic run: --resume and --overwrite exclude each other\n";
+    return 2;
+  }
+  cv::setNumThreads(std::max(1, args.GetInt("--threads")));
+
+  PosTrack::Options pos_options;
+  pos_options.max_gap_s = args.GetDouble("--max-gap");
+  PosTrack pos = PosTrack::LoadCsv(args.Get("--pos"), pos_options);
+  CameraModel camera = CameraModel::LoadJson(args.Get("--camera"));
+  FrameSource::Options source_options;
+  source_options.fps = args.GetDouble("--fps");
+  source_options.t0_s = args.GetDouble("--t0");
+  std::unique_ptr<FrameSource> source = FrameSource::Open(args.Get("--frames"), source_options);
+
+  MosaickerOptions options;
+  options.store_path = args.Get("--out");
+  options.mode = args.Has("--resume")      ? TileStoreOptions::Mode::kResume
+                 : args.Has("--overwrite") ? TileStoreOptions::Mode::kOverwrite
+                                           : TileStoreOptions::Mode::kCreate;
+  options.gsd_m = args.GetDouble("--gsd");
+  options.ground_height_m = args.GetDouble("--ground-height");
+  options.tile_size = args.GetInt("--tile-size");
+  options.compression = args.Get("--compression");
+  options.fusion.window_frames = args.GetInt("--window");
+  options.fusion.optimize = !args.Has("--no-optimize");
+  options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
+  options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
+  options.search_radius_px = args.GetDouble("--radius");
+  Mosaicker mosaicker(options, camera, pos);
+
+  const auto start = Clock::now();
+  Progress progress(source->size());
+  int64_t done = 0, bad_frames = 0;
+  const int64_t resume_after = mosaicker.resumed_last_index();
+  if (resume_after >= 0) {
+    // Rebuild the fusion state from the frames before the resume point, without painting.
+    source->SkipThrough(resume_after - options.fusion.window_frames);
+    std::cerr << "run: resuming after frame " << resume_after << "\n";
+    mosaicker.SetReplay(true);
+  }
+  SourceFrame frame;
+  std::string problem;
+  while (true) {
+    const FrameSource::Status status = source->Next(&frame, &problem);
+    if (status == FrameSource::Status::kEnd) break;
+    if (resume_after >= 0 && frame.index > resume_after) mosaicker.SetReplay(false);
+    ++done;
+    if (status == FrameSource::Status::kBadFrame) {
+      ++bad_frames;
+      std::cerr << "\nrun: warning: skipped " << problem << "\n";
+      continue;
+    }
+    const PushResult result = mosaicker.Push(frame.index, frame.time_s, frame.image);
+    if (!result.placed()) std::cerr << "\nrun: warning: skipped " << result.reason << "\n";
+    if (getenv("IRMOSAIC_DEBUG") && result.placed()) std::cerr << frame.index << " nb " << result.placement.neighbours.size() << " inl " << result.placement.inliers << " " << result.placement.note << "\n";
+    progress.Update(done);
+  }
+  mosaicker.SetReplay(false);
+  progress.Update(done, true);
+  progress.Done();
+  mosaicker.Finish();
+  const std::string placements_path =
+      (std::filesystem::path(options.store_path) / "placements.json").string();
+  mosaicker.WritePlacements(placements_path);
+  const MosaickerSummary s = mosaicker.summary();
+  const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
+  std::cerr << "run: " << s.frames_placed << " frames placed (" << s.frames_registered
+            << " registered, " << s.frames_pos_only << " POS only), "
+            << s.frames_skipped + bad_frames << " skipped, in " << elapsed << " s ("
+            << (elapsed > 0 ? done / elapsed : 0.0) << " frames/s)\n"
+            << "run: " << s.fusion.solves << " optimizer solves, " << s.generations_published
+            << " generations published, publish latency p50 " << s.publish_latency_p50_s
+            << " s p99 " << s.publish_latency_p99_s << " s\n"
+            << "run: store " << options.store_path << " (open mosaic.vrt or the .qlr in QGIS)\n";
+  const nlohmann::json report = {
+      {"frames_read", done},
+      {"frames_placed", s.frames_placed},
+      {"frames_registered", s.frames_registered},
+      {"frames_pos_only", s.frames_pos_only},
+      {"frames_skipped", s.frames_skipped + bad_frames},
+      {"seconds", elapsed},
+      {"frames_per_second", elapsed > 0 ? done / elapsed : 0.0},
+      {"gsd_m", s.gsd_m},
+      {"origin", {{"lat_deg", s.origin_lat_deg}, {"lon_deg", s.origin_lon_deg}}},
+      {"generations_published", s.generations_published},
+      {"publish_latency_s", {{"p50", s.publish_latency_p50_s}, {"p99", s.publish_latency_p99_s},
+                             {"max", s.publish_latency_max_s}}},
+      {"optimizer", {{"solves", s.fusion.solves}, {"max_solve_ms", s.fusion.max_solve_ms},
+                     {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
+                     {"rerendered_frames", s.fusion.rerendered_frames}}},
+      {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},
+      {"placements", placements_path}};
+  const std::string report_path = args.Get("--report").empty()
+                                      ? (std::filesystem::path(options.store_path) / "run_report.json").string()
+                                      : args.Get("--report");
+  std::ofstream(report_path) << report.dump(2) << "\n";
+  if (s.frames_placed == 0) {
+    std::cerr << "irmosaic run: error: no frame could be placed (see the warnings above)\n";
+    return 1;
+  }
+  return 0;
+}
+
+}  // namespace irmosaic::cli

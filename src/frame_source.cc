@@ -1,0 +1,200 @@
+#include "irmosaic/frame_source.h"
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+#include <sstream>
+#include <vector>
+
+#include "irmosaic/error.h"
+
+namespace irmosaic {
+namespace fs = std::filesystem;
+
+cv::Mat ToPipelineImage(const cv::Mat& image) {
+  if (image.empty()) return image;
+  cv::Mat gray = image;
+  if (image.channels() == 3) cv::cvtColor(image, gray, cv::COLOR_BGR2GRAY);
+  if (image.channels() == 4) cv::cvtColor(image, gray, cv::COLOR_BGRA2GRAY);
+  if (gray.depth() == CV_8U || gray.depth() == CV_16U || gray.depth() == CV_32F) return gray;
+  cv::Mat converted;
+  gray.convertTo(converted, CV_32F);
+  return converted;
+}
+
+namespace {
+
+// A list of image files with their times.
+class FileListSource : public FrameSource {
+ public:
+  struct Entry {
+    int64_t index;
+    double time_s;
+    std::string path;
+  };
+  explicit FileListSource(std::vector<Entry> entries) : entries_(std::move(entries)) {}
+
+  Status Next(SourceFrame* frame, std::string* problem) override {
+    if (next_ >= entries_.size()) return Status::kEnd;
+    const Entry& e = entries_[next_++];
+    frame->index = e.index;
+    frame->time_s = e.time_s;
+    frame->name = e.path;
+    frame->image = ToPipelineImage(cv::imread(e.path, cv::IMREAD_UNCHANGED));
+    if (frame->image.empty()) {
+      *problem = "cannot read image " + e.path + " (missing, truncated or not an image)";
+      return Status::kBadFrame;
+    }
+    return Status::kFrame;
+  }
+  int64_t size() const override { return static_cast<int64_t>(entries_.size()); }
+  void SkipThrough(int64_t index) override {
+    while (next_ < entries_.size() && entries_[next_].index <= index) ++next_;
+  }
+
+ private:
+  std::vector<Entry> entries_;
+  size_t next_ = 0;
+};
+
+class VideoSource : public FrameSource {
+ public:
+  VideoSource(const std::string& path, const Options& options) : path_(path), options_(options) {
+    capture_.open(path);
+    if (!capture_.isOpened()) {
+      throw InputError({path, 0, 0, ""}, "OpenCV cannot open this video (unsupported codec or "
+                       "container, or not a video)", "convert it to an image sequence or a "
+                       "format FFmpeg reads, e.g. ffmpeg -i IN -c:v ffv1 OUT.mkv");
+    }
+    const double count = capture_.get(cv::CAP_PROP_FRAME_COUNT);
+    size_ = count > 0 ? static_cast<int64_t>(count) : -1;
+    capture_.set(cv::CAP_PROP_CONVERT_RGB, 0);
+  }
+  Status Next(SourceFrame* frame, std::string* problem) override {
+    cv::Mat image;
+    if (!capture_.grab()) return Status::kEnd;
+    const int64_t i = next_++;
+    frame->index = i;
+    frame->time_s = options_.t0_s + static_cast<double>(i) / options_.fps;
+    frame->name = path_ + " frame " + std::to_string(i);
+    if (!capture_.retrieve(image) || image.empty()) {
+      *problem = "cannot decode " + frame->name;
+      return Status::kBadFrame;
+    }
+    frame->image = ToPipelineImage(image);
+    return Status::kFrame;
+  }
+  int64_t size() const override { return size_; }
+  void SkipThrough(int64_t index) override {
+    while (next_ <= index && capture_.grab()) ++next_;
+  }
+
+ private:
+  std::string path_;
+  Options options_;
+  cv::VideoCapture capture_;
+  int64_t size_ = -1;
+  int64_t next_ = 0;
+};
+
+bool IsImageFile(const fs::path& p) {
+  std::string ext = p.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+  return ext == ".tif" || ext == ".tiff" || ext == ".png" || ext == ".jpg" || ext == ".jpeg" ||
+         ext == ".pgm" || ext == ".bmp";
+}
+
+std::vector<FileListSource::Entry> ReadFrameCsv(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) {
+    throw InputError({path, 0, 0, ""}, "cannot open the frame list",
+                     "check the path and that the file is readable");
+  }
+  const fs::path base = fs::path(path).parent_path();
+  std::vector<FileListSource::Entry> entries;
+  std::string line;
+  int line_number = 0;
+  bool header = false;
+  while (std::getline(in, line)) {
+    ++line_number;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line.empty() || line[0] == '#') continue;
+    if (!header) {
+      if (line != "index,time_s,file") {
+        throw InputError({path, line_number, 1, ""}, "the header is not 'index,time_s,file'",
+                         "write the header index,time_s,file");
+      }
+      header = true;
+      continue;
+    }
+    std::stringstream row(line);
+    std::string index, time, file;
+    if (!std::getline(row, index, ',') || !std::getline(row, time, ',') ||
+        !std::getline(row, file)) {
+      throw InputError({path, line_number, 0, ""}, "row does not have 3 fields",
+                       "write index,time_s,file");
+    }
+    FileListSource::Entry e;
+    try {
+      size_t used = 0;
+      e.index = std::stoll(index, &used);
+      if (used != index.size()) throw std::invalid_argument(index);
+      e.time_s = std::stod(time, &used);
+      if (used != time.size() || !std::isfinite(e.time_s)) throw std::invalid_argument(time);
+    } catch (const std::exception&) {
+      throw InputError({path, line_number, 0, ""}, "index or time is not a number",
+                       "write a whole index and a time in seconds");
+    }
+    if (!entries.empty() && (e.index <= entries.back().index || e.time_s <= entries.back().time_s)) {
+      throw InputError({path, line_number, 0, ""}, "index and time must increase from row to row",
+                       "sort the frame list");
+    }
+    e.path = fs::path(file).is_absolute() ? file : (base / file).string();
+    entries.push_back(e);
+  }
+  if (entries.empty()) {
+    throw InputError({path, line_number, 0, ""}, "the frame list has no frames",
+                     "list at least one frame after the header");
+  }
+  return entries;
+}
+
+}  // namespace
+
+std::unique_ptr<FrameSource> FrameSource::Open(const std::string& path, const Options& options) {
+  if (!(options.fps > 0.0) || !std::isfinite(options.t0_s)) {
+    throw InputError({"--fps", 0, 0, ""}, "the frame rate must be positive",
+                     "give --fps, e.g. 25");
+  }
+  std::error_code ec;
+  if (!fs::exists(path, ec)) {
+    throw InputError({path, 0, 0, ""}, "no such file or folder", "check the frames path");
+  }
+  if (fs::is_directory(path, ec)) {
+    std::vector<fs::path> files;
+    for (const auto& entry : fs::directory_iterator(path)) {
+      if (entry.is_regular_file() && IsImageFile(entry.path())) files.push_back(entry.path());
+    }
+    std::sort(files.begin(), files.end());
+    if (files.empty()) {
+      throw InputError({path, 0, 0, ""}, "the folder holds no images (.tif .png .jpg .pgm .bmp)",
+                       "point --frames at the image sequence or its frames.csv");
+    }
+    std::vector<FileListSource::Entry> entries;
+    for (size_t i = 0; i < files.size(); ++i) {
+      entries.push_back({static_cast<int64_t>(i), options.t0_s + i / options.fps, files[i].string()});
+    }
+    return std::make_unique<FileListSource>(std::move(entries));
+  }
+  if (fs::path(path).extension() == ".csv") return std::make_unique<FileListSource>(ReadFrameCsv(path));
+  if (IsImageFile(path)) {
+    return std::make_unique<FileListSource>(
+        std::vector<FileListSource::Entry>{{0, options.t0_s, path}});
+  }
+  return std::make_unique<VideoSource>(path, options);
+}
+
+}  // namespace irmosaic

@@ -1,0 +1,373 @@
+#include "irmosaic/mosaicker.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <deque>
+#include <fstream>
+#include <iomanip>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "irmosaic/error.h"
+#include "irmosaic/frame_geometry.h"
+#include "irmosaic/local_frame.h"
+#include "irmosaic/orthorectify.h"
+#include "irmosaic/registration.h"
+
+namespace irmosaic {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double RoundSignificant(double value, int digits) {
+  if (!(value > 0.0)) return value;
+  const double scale = std::pow(10.0, digits - 1 - std::floor(std::log10(value)));
+  return std::round(value * scale) / scale;
+}
+
+PixelType PixelTypeOf(const cv::Mat& image) {
+  switch (image.depth()) {
+    case CV_8U: return PixelType::kByte;
+    case CV_16U: return PixelType::kUInt16;
+    default: return PixelType::kFloat32;
+  }
+}
+
+// Undistorted image pixel of an orthoimage pixel.
+Eigen::Vector2d ImageFromOrtho(const OrthoImage& ortho, const Eigen::Vector2d& p) {
+  return ApplyHomography(ortho.ortho_from_image.inverse(), p);
+}
+
+}  // namespace
+
+bool MosaickerOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& text) {
+    if (error) *error = text;
+    return false;
+  };
+  if (store_path.empty()) return fail("store_path is empty: name the output store folder");
+  if (!(gsd_m >= 0.0) || !std::isfinite(gsd_m)) return fail("gsd_m must be >= 0 (0: automatic)");
+  if (!(pos_position_sigma_m > 0.0)) return fail("pos_position_sigma_m must be positive");
+  if (!(pos_attitude_sigma_deg > 0.0)) return fail("pos_attitude_sigma_deg must be positive");
+  if (!(search_radius_px >= 4.0 && search_radius_px <= 1024.0))
+    return fail("search_radius_px must be in [4, 1024]");
+  if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
+  if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
+  std::string fusion_error;
+  if (!fusion.IsValid(&fusion_error)) return fail("fusion: " + fusion_error);
+  return true;
+}
+
+class Mosaicker::Impl : public MosaicSink {
+ public:
+  Impl(MosaickerOptions options, CameraModel camera, PosTrack pos)
+      : options_(std::move(options)),
+        camera_(std::move(camera)),
+        pos_(std::move(pos)),
+        ground_(options_.ground_height_m),
+        ortho_(camera_) {
+    std::string error;
+    if (!options_.IsValid(&error)) {
+      throw InputError({"options", 0, 0, ""}, error, "correct the option");
+    }
+    const PosRecord& first = pos_.records().front();
+    const double lat0 = std::isnan(options_.origin_lat_deg) ? first.lat_deg : options_.origin_lat_deg;
+    const double lon0 = std::isnan(options_.origin_lon_deg) ? first.lon_deg : options_.origin_lon_deg;
+    frame_ = std::make_unique<LocalFrame>(lat0, lon0);
+    double gsd = options_.gsd_m;
+    if (gsd == 0.0) {
+      const double above_ground = first.height_m - options_.ground_height_m;
+      if (!(above_ground > 1.0)) {
+        throw InputError({"POS", 1, 0, "height_m"},
+                         "the first POS record is not above the ground height",
+                         "give --ground-height in ellipsoidal metres, or --gsd");
+      }
+      gsd = RoundSignificant(above_ground / camera_.fx, 3);
+    }
+    grid_ = MosaicGrid{gsd};
+    georef_ = {lat0, lon0, gsd, frame_->CrsWkt()};
+    PairRegistrationOptions registration;
+    registrar_ = std::make_unique<PairRegistrar>(registration);
+    fusion_ = std::make_unique<MapFusion>(
+        options_.fusion, camera_,
+        [this](const FusionFrame& base, const FusionFrame& templ) { return Register(base, templ); },
+        this);
+    if (options_.mode == TileStoreOptions::Mode::kResume) OpenStore(PixelType::kUInt16);
+  }
+
+  ~Impl() override {
+    fusion_.reset();  // Joins the optimizer before the store goes.
+  }
+
+  PushResult Push(int64_t index, double time_s, const cv::Mat& image) {
+    const auto arrival = Clock::now();
+    PushResult result;
+    Count(&MosaickerSummary::frames_pushed);
+    auto skip = [&](const std::string& reason) {
+      result.reason = "frame " + std::to_string(index) + " (time " + Format(time_s) + " s): " +
+                      reason;
+      Count(&MosaickerSummary::frames_skipped);
+      return result;
+    };
+    if (image.empty() || image.channels() != 1 ||
+        (image.depth() != CV_8U && image.depth() != CV_16U && image.depth() != CV_32F)) {
+      return skip("the image is empty or not one channel of 8-bit, 16-bit or float");
+    }
+    if (image.cols != camera_.width || image.rows != camera_.height) {
+      return skip("the image is " + std::to_string(image.cols) + "x" + std::to_string(image.rows) +
+                  " but the camera file says " + std::to_string(camera_.width) + "x" +
+                  std::to_string(camera_.height));
+    }
+    if (store_ && CvDepthOf(store_->pixel_type()) != image.depth()) {
+      return skip(std::string("its bit depth differs from the store's (") +
+                  GdalTypeNameOf(store_->pixel_type()) + ")");
+    }
+    const PoseLookup pose = pos_.At(time_s);
+    if (!pose.ok()) return skip("no POS: " + pose.message);
+    GeometryOptions geometry_options;
+    geometry_options.max_range_m = options_.max_range_m;
+    const FrameGeometry geometry =
+        ComputeFrameGeometry(camera_, pose.pose, *frame_, grid_, ground_, geometry_options);
+    if (!geometry.ok) return skip(geometry.problem);
+    FusionFrame frame;
+    frame.index = index;
+    frame.time_s = time_s;
+    frame.image = image.clone();
+    frame.pos_mosaic_from_image = geometry.mosaic_from_image;
+    try {
+      ortho_.Run(image, geometry.mosaic_from_image, &frame.pos_ortho);
+    } catch (const InputError& e) {
+      return skip(e.problem());
+    }
+    frame.prior_sqrt_information = PosPriorSqrtInformation(
+        camera_, pose.pose, *frame_, grid_, ground_, options_.pos_position_sigma_m,
+        options_.pos_attitude_sigma_deg, 0.2);
+    if (!store_) OpenStore(PixelTypeOf(image));
+    result.placement = fusion_->Push(std::move(frame));
+    result.status = PushResult::Status::kPlaced;
+    last_index_ = index;
+    Count(&MosaickerSummary::frames_placed);
+    if (result.placement.pos_only) {
+      Count(&MosaickerSummary::frames_pos_only);
+    } else {
+      Count(&MosaickerSummary::frames_registered);
+    }
+    // Publish on a clock: each frame waits at most one interval plus the writer's work.
+    pending_.push_back({arrival, 0});
+    if (Clock::now() - last_publish_ >= std::chrono::duration<double>(options_.publish_interval_s)) {
+      RequestPublish();
+    }
+    CollectLatencies();
+    return result;
+  }
+
+  void RequestPublish() {
+    if (!store_) return;
+    nlohmann::json state = {{"last_index", last_index_}};
+    store_->SetApplicationState(state.dump());
+    const int64_t generation = store_->RequestPublish();
+    for (auto& p : pending_) {
+      if (p.second == 0) p.second = generation;
+    }
+    last_publish_ = Clock::now();
+  }
+
+  void Finish() {
+    fusion_->Finish();
+    if (!store_) return;
+    RequestPublish();
+    store_->Close();
+    CollectLatencies();
+  }
+
+  MosaickerSummary summary() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    MosaickerSummary s = summary_;
+    s.fusion = fusion_->stats();
+    s.gsd_m = grid_.gsd_m;
+    s.origin_lat_deg = georef_.origin_lat_deg;
+    s.origin_lon_deg = georef_.origin_lon_deg;
+    if (store_) s.generations_published = store_->published_generation();
+    if (!latencies_s_.empty()) {
+      std::vector<double> sorted = latencies_s_;
+      std::sort(sorted.begin(), sorted.end());
+      auto at = [&](double q) {
+        return sorted[std::min(sorted.size() - 1, static_cast<size_t>(q * sorted.size()))];
+      };
+      s.publish_latency_p50_s = at(0.5);
+      s.publish_latency_p99_s = at(0.99);
+      s.publish_latency_max_s = sorted.back();
+    }
+    return s;
+  }
+
+  std::vector<FramePlacement> Placements() const { return fusion_->Placements(); }
+
+  void WritePlacements(const std::string& path) const {
+    nlohmann::json frames = nlohmann::json::array();
+    for (const FramePlacement& p : fusion_->Placements()) {
+      std::vector<double> h(9);
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) h[3 * r + c] = p.mosaic_from_image(r, c);
+      frames.push_back({{"index", p.index},
+                        {"time_s", p.time_s},
+                        {"mosaic_from_image", h},
+                        {"pos_only", p.pos_only},
+                        {"inliers", p.inliers},
+                        {"residual_px", p.residual_px},
+                        {"gain", p.gain},
+                        {"offset", p.offset}});
+    }
+    const nlohmann::json doc = {
+        {"origin", {{"lat_deg", georef_.origin_lat_deg}, {"lon_deg", georef_.origin_lon_deg}}},
+        {"gsd_m", grid_.gsd_m},
+        {"frames", frames}};
+    const std::string tmp = path + ".tmp";
+    {
+      std::ofstream out(tmp);
+      out << std::setprecision(17) << doc.dump(1) << "\n";
+      if (!out) throw OutputError("cannot write " + tmp + " (disk full or not writable?)");
+    }
+    if (std::rename(tmp.c_str(), path.c_str()) != 0) {
+      throw OutputError("cannot rename " + tmp + " to " + path);
+    }
+  }
+
+  void SetReplay(bool replay) { replay_ = replay; }
+  int64_t resumed_last_index() const { return resumed_last_index_; }
+  TileStore* store() { return store_.get(); }
+
+  // MosaicSink.
+  void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) override {
+    if (replay_ || !store_) return;
+    store_->Paint(image, weight, origin_px);
+  }
+  void FramePlaced(const FramePlacement& placement) override {
+    if (replay_ || !store_) return;
+    FrameRecord record;
+    record.index = placement.index;
+    record.time_s = placement.time_s;
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(camera_.width - 0.5, -0.5),
+        Eigen::Vector2d(camera_.width - 0.5, camera_.height - 0.5),
+        Eigen::Vector2d(-0.5, camera_.height - 0.5)};
+    for (int k = 0; k < 4; ++k) {
+      record.footprint_m[k] =
+          grid_.PlaneFromPixel(ApplyHomography(placement.mosaic_from_image, corners[k]));
+    }
+    record.pos_only = placement.pos_only;
+    record.residual_px = placement.residual_px;
+    record.inliers = placement.inliers;
+    record.status = placement.pos_only ? "pos_only" : "registered";
+    store_->PutFrameRecord(record);
+  }
+
+ private:
+  void Count(int64_t MosaickerSummary::*counter) {
+    std::lock_guard<std::mutex> lock(mu_);
+    ++(summary_.*counter);
+  }
+
+  static std::string Format(double value) {
+    std::ostringstream text;
+    text << std::setprecision(10) << value;
+    return text.str();
+  }
+
+  void OpenStore(PixelType type) {
+    TileStoreOptions store_options;
+    store_options.path = options_.store_path;
+    store_options.mode = options_.mode;
+    store_options.tile_size = options_.tile_size;
+    store_options.compression = options_.compression;
+    store_options.pixel_type = type;
+    store_ = TileStore::Open(store_options, georef_);
+    if (options_.mode == TileStoreOptions::Mode::kResume) {
+      const std::string state = store_->application_state();
+      if (!state.empty()) {
+        const nlohmann::json doc = nlohmann::json::parse(state, nullptr, false);
+        if (doc.is_object() && doc.contains("last_index") && doc["last_index"].is_number()) {
+          resumed_last_index_ = doc["last_index"].get<int64_t>();
+        }
+      }
+    }
+  }
+
+  // SCD + fast LSM + RANSAC between the POS orthoimages; tie points back to image pixels.
+  PairMatch Register(const FusionFrame& base, const FusionFrame& templ) {
+    PairMatch match;
+    const Eigen::Vector2d predicted(templ.pos_ortho.origin_px.x - base.pos_ortho.origin_px.x,
+                                    templ.pos_ortho.origin_px.y - base.pos_ortho.origin_px.y);
+    const PairRegistration r =
+        registrar_->Register(base.pos_ortho.image, base.pos_ortho.mask, templ.pos_ortho.image,
+                             templ.pos_ortho.mask, predicted, options_.search_radius_px);
+    if (!r.ok()) {
+      match.reason = std::string(ToString(r.status)) + ": " + r.reason;
+      return match;
+    }
+    match.ok = true;
+    match.residual_rms_px = r.residual_rms_px;
+    match.base_from_template = base.pos_ortho.ortho_from_image.inverse() * r.base_from_template *
+                               templ.pos_ortho.ortho_from_image;
+    for (const TiePoint& t : r.tie_points) {
+      if (!t.inlier) continue;
+      match.base_points.push_back(ImageFromOrtho(base.pos_ortho, t.in_base));
+      match.template_points.push_back(ImageFromOrtho(templ.pos_ortho, t.in_template));
+    }
+    return match;
+  }
+
+  void CollectLatencies() {
+    if (!store_) return;
+    const int64_t published = store_->published_generation();
+    const auto now = Clock::now();
+    std::lock_guard<std::mutex> lock(mu_);
+    while (!pending_.empty() && pending_.front().second != 0 &&
+           pending_.front().second <= published) {
+      latencies_s_.push_back(
+          std::chrono::duration<double>(now - pending_.front().first).count());
+      pending_.pop_front();
+    }
+    if (latencies_s_.size() > 200000) latencies_s_.erase(latencies_s_.begin(), latencies_s_.begin() + 100000);
+  }
+
+  MosaickerOptions options_;
+  CameraModel camera_;
+  PosTrack pos_;
+  FlatGround ground_;
+  std::unique_ptr<LocalFrame> frame_;
+  MosaicGrid grid_;
+  StoreGeoreference georef_;
+  Orthorectifier ortho_;
+  std::unique_ptr<PairRegistrar> registrar_;
+  std::unique_ptr<TileStore> store_;
+  std::unique_ptr<MapFusion> fusion_;
+  bool replay_ = false;
+  int64_t last_index_ = -1;
+  int64_t resumed_last_index_ = -1;
+  Clock::time_point last_publish_ = Clock::now();
+  mutable std::mutex mu_;
+  std::deque<std::pair<Clock::time_point, int64_t>> pending_;  // (arrival, generation)
+  std::vector<double> latencies_s_;
+  MosaickerSummary summary_;
+};
+
+Mosaicker::Mosaicker(MosaickerOptions options, CameraModel camera, PosTrack pos)
+    : impl_(std::make_unique<Impl>(std::move(options), std::move(camera), std::move(pos))) {}
+Mosaicker::~Mosaicker() = default;
+PushResult Mosaicker::Push(int64_t index, double time_s, const cv::Mat& image) {
+  return impl_->Push(index, time_s, image);
+}
+void Mosaicker::SetReplay(bool replay) { impl_->SetReplay(replay); }
+void Mosaicker::Finish() { impl_->Finish(); }
+void Mosaicker::RequestPublish() { impl_->RequestPublish(); }
+int64_t Mosaicker::resumed_last_index() const { return impl_->resumed_last_index(); }
+MosaickerSummary Mosaicker::summary() const { return impl_->summary(); }
+std::vector<FramePlacement> Mosaicker::Placements() const { return impl_->Placements(); }
+void Mosaicker::WritePlacements(const std::string& path) const { impl_->WritePlacements(path); }
+TileStore* Mosaicker::store() { return impl_->store(); }
+
+}  // namespace irmosaic
