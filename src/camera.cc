@@ -15,14 +15,13 @@ namespace {
 using nlohmann::json;
 
 const std::set<std::string>& KnownFields() {
-  static const std::set<std::string> fields = {"width",      "height",        "fx",
-                                               "fy",         "cx",            "cy",
-                                               "distortion", "boresight_deg", "lever_arm_m"};
+  static const std::set<std::string> fields = {
+      "width", "height", "fx", "fy", "cx", "cy", "distortion", "boresight_deg", "lever_arm_m"};
   return fields;
 }
 
-double NumberField(const json& doc, const std::string& path, const std::string& name,
-                   bool required, double fallback) {
+double NumberField(const json& doc, const std::string& path, const std::string& name, bool required,
+                   double fallback) {
   if (!doc.contains(name)) {
     if (required) {
       throw InputError({path, 0, 0, name}, "required field '" + name + "' is missing",
@@ -91,8 +90,11 @@ CameraModel CameraModel::LoadJson(const std::string& path) {
   const double height = NumberField(doc, path, "height", true, 0);
   for (const auto& [name, value] : {std::pair{"width", width}, std::pair{"height", height}}) {
     if (value != std::floor(value) || value < 1 || value > 100000) {
-      throw InputError({path, 0, 0, name}, std::string("'") + name + "' must be a whole number "
-                       "of pixels from 1 to 100000", "write the sensor size in pixels");
+      throw InputError({path, 0, 0, name},
+                       std::string("'") + name +
+                           "' must be a whole number "
+                           "of pixels from 1 to 100000",
+                       "write the sensor size in pixels");
     }
   }
   camera.width = static_cast<int>(width);

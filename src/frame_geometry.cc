@@ -1,7 +1,7 @@
 #include "irmosaic/frame_geometry.h"
 
-#include <GeographicLib/Geocentric.hpp>
 #include <Eigen/SVD>
+#include <GeographicLib/Geocentric.hpp>
 #include <cmath>
 #include <sstream>
 
@@ -18,8 +18,7 @@ Eigen::Matrix3d EnuFromNed() {
 }
 
 // Smallest positive t where the ray meets the ellipsoid inflated by `h` (an initial guess).
-bool InflatedEllipsoidHit(const Eigen::Vector3d& p, const Eigen::Vector3d& d, double h,
-                          double* t) {
+bool InflatedEllipsoidHit(const Eigen::Vector3d& p, const Eigen::Vector3d& d, double h, double* t) {
   const double a = Earth().EquatorialRadius() + h;
   const double b = Earth().EquatorialRadius() * (1.0 - Earth().Flattening()) + h;
   const Eigen::Vector3d s(1.0 / a, 1.0 / a, 1.0 / b);
@@ -152,13 +151,18 @@ FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
         std::ostringstream problem;
         problem << "the ray through pixel (" << px.x() << ", " << px.y() << ") ";
         switch (hit.status) {
-          case RayHit::Status::kAboveHorizon: problem << "points at or above the horizon"; break;
+          case RayHit::Status::kAboveHorizon:
+            problem << "points at or above the horizon";
+            break;
           case RayHit::Status::kBeyondRange:
             problem << "meets the ground " << hit.range_m << " m away, beyond the limit of "
                     << options.max_range_m << " m";
             break;
-          case RayHit::Status::kCameraBelowGround: problem << "starts below the ground"; break;
-          case RayHit::Status::kOk: break;
+          case RayHit::Status::kCameraBelowGround:
+            problem << "starts below the ground";
+            break;
+          case RayHit::Status::kOk:
+            break;
         }
         result.problem = problem.str();
         return result;
@@ -171,7 +175,8 @@ FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
   result.mosaic_from_image = FitHomography(image_pts, mosaic_pts);
   double sum_sq = 0.0;
   for (size_t k = 0; k < image_pts.size(); ++k) {
-    const double e = (ApplyHomography(result.mosaic_from_image, image_pts[k]) - mosaic_pts[k]).norm();
+    const double e =
+        (ApplyHomography(result.mosaic_from_image, image_pts[k]) - mosaic_pts[k]).norm();
     sum_sq += e * e;
     result.fit_max_px = std::max(result.fit_max_px, e);
   }

@@ -1,10 +1,11 @@
 #include "irmosaic/local_frame.h"
 
+#include <ogr_spatialref.h>
+#include <proj.h>
+
 #include <GeographicLib/LocalCartesian.hpp>
 #include <cmath>
 #include <mutex>
-#include <ogr_spatialref.h>
-#include <proj.h>
 #include <sstream>
 
 #include "irmosaic/error.h"
@@ -44,8 +45,7 @@ Eigen::Vector2d LocalFrame::PlaneFromGeodetic(double lat_deg, double lon_deg) co
   return {x, y};
 }
 
-Eigen::Vector3d LocalFrame::EnuFromGeodetic(double lat_deg, double lon_deg,
-                                            double height_m) const {
+Eigen::Vector3d LocalFrame::EnuFromGeodetic(double lat_deg, double lon_deg, double height_m) const {
   double x = 0, y = 0, z = 0;
   impl_->on_ellipsoid.Forward(lat_deg, lon_deg, height_m, x, y, z);
   return {x, y, z};
@@ -85,8 +85,7 @@ struct PlaneToGeographic::Impl {
 PlaneToGeographic::PlaneToGeographic(const LocalFrame& frame) : impl_(std::make_unique<Impl>()) {
   impl_->context = proj_context_create();
   const std::string source = frame.CrsProj4();
-  impl_->transform =
-      proj_create_crs_to_crs(impl_->context, source.c_str(), "EPSG:4326", nullptr);
+  impl_->transform = proj_create_crs_to_crs(impl_->context, source.c_str(), "EPSG:4326", nullptr);
   if (impl_->transform == nullptr) {
     proj_context_destroy(impl_->context);
     throw Error("PROJ cannot build the transform from " + source + " to EPSG:4326");

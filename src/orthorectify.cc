@@ -17,8 +17,10 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
                          OrthoImage* out) {
   if (frame.empty() || frame.channels() != 1 ||
       (frame.depth() != CV_8U && frame.depth() != CV_16U && frame.depth() != CV_32F)) {
-    throw InputError({"frame", 0, 0, ""}, "orthorectification needs a one-channel 8-bit, "
-                     "16-bit or float image", "convert the frame to grayscale");
+    throw InputError({"frame", 0, 0, ""},
+                     "orthorectification needs a one-channel 8-bit, "
+                     "16-bit or float image",
+                     "convert the frame to grayscale");
   }
   if (!mosaic_from_image.allFinite()) {
     throw InputError({"frame", 0, 0, ""}, "the correction homography is not finite",
@@ -31,10 +33,9 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   constexpr int kSamples = 8;
   for (int s = 0; s <= kSamples; ++s) {
     const double f = static_cast<double>(s) / kSamples;
-    for (const Eigen::Vector2d& raw : {Eigen::Vector2d(-0.5 + f * w, -0.5),
-                                      Eigen::Vector2d(-0.5 + f * w, h - 0.5),
-                                      Eigen::Vector2d(-0.5, -0.5 + f * h),
-                                      Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
+    for (const Eigen::Vector2d& raw :
+         {Eigen::Vector2d(-0.5 + f * w, -0.5), Eigen::Vector2d(-0.5 + f * w, h - 0.5),
+          Eigen::Vector2d(-0.5, -0.5 + f * h), Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
       const Eigen::Vector3d q = mosaic_from_image * camera_.Undistort(raw).homogeneous();
       if (q.z() <= 0.0) {
         throw InputError({"frame", 0, 0, ""}, "the frame's footprint crosses the horizon",

@@ -161,11 +161,11 @@ PosTrack PosTrack::LoadCsv(const std::string& path, const Options& options) {
       }
       for (size_t c = 0; c < Columns().size(); ++c) {
         if (Columns()[c].required && !seen[c]) {
-          throw InputError({path, line_number, 0, Columns()[c].name},
-                           std::string("the header lacks the required column '") +
-                               Columns()[c].name + "'",
-                           "the header must name at least time_s,lat_deg,lon_deg,height_m,"
-                           "roll_deg,pitch_deg,yaw_deg");
+          throw InputError(
+              {path, line_number, 0, Columns()[c].name},
+              std::string("the header lacks the required column '") + Columns()[c].name + "'",
+              "the header must name at least time_s,lat_deg,lon_deg,height_m,"
+              "roll_deg,pitch_deg,yaw_deg");
         }
       }
       have_header = true;
@@ -274,7 +274,8 @@ PoseLookup PosTrack::At(double time_s) const {
   auto upper = std::upper_bound(records_.begin(), records_.end(), time_s,
                                 [](double t, const PosRecord& r) { return t < r.time_s; });
   if (upper == records_.end()) upper = records_.end() - 1;
-  if (upper == records_.begin()) upper = records_.begin() + std::min<size_t>(1, records_.size() - 1);
+  if (upper == records_.begin())
+    upper = records_.begin() + std::min<size_t>(1, records_.size() - 1);
   const PosRecord& a = *(upper == records_.begin() ? upper : upper - 1);
   const PosRecord& b = *upper;
   const double span = b.time_s - a.time_s;

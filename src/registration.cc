@@ -280,6 +280,9 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
         RefineWithPrior(out.tie_points, out.base_from_template, std::max(0.05, rms),
                         options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
   }
+  if (options_.joint_refinement && options_.lsm.method == LsmMethod::kFast) {
+    JointRefine(keypoints, &out.base_from_template);
+  }
   mark_inliers(&sum_sq);
   out.inlier_ratio = static_cast<double>(out.inliers) / out.tie_points.size();
   out.residual_rms_px = out.inliers > 0 ? std::sqrt(sum_sq / out.inliers) : 0.0;
@@ -296,6 +299,119 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     out.status = PairRegistration::Status::kOk;
   }
   return out;
+}
+
+void FineRegistrar::JointRefine(const std::vector<Eigen::Vector2d>& keypoints,
+                                Eigen::Matrix3d* homography) {
+  // All patches share one homography: their 21 filter equations each are stacked into one
+  // Gauss-Newton system in its 8 parameters (plus the distortion prior), with Cauchy weights
+  // per patch against outliers. Many patches average the noise that defeats single ones.
+  constexpr double kScale = 100.0;
+  const int r = lsm_.patch_radius_px();
+  std::vector<Eigen::Vector2d> points;
+  std::vector<Eigen::MatrixXd> designs;
+  Eigen::Vector2d centre = Eigen::Vector2d::Zero();
+  for (const Eigen::Vector2d& p : keypoints) {
+    Eigen::MatrixXd projected;
+    if (!lsm_.ProjectTemplate(templ_f_, p, &projected)) continue;
+    points.push_back(p);
+    designs.push_back(projected);
+    centre += p;
+  }
+  if (points.size() < 4) return;
+  centre /= static_cast<double>(points.size());
+  const Eigen::Vector2d moved = (*homography * centre.homogeneous()).hnormalized();
+  Eigen::Matrix3d from_templ = Eigen::Matrix3d::Identity(), from_base = Eigen::Matrix3d::Identity();
+  from_templ.topLeftCorner<2, 2>() /= kScale;
+  from_templ.topRightCorner<2, 1>() = -centre / kScale;
+  from_base.topLeftCorner<2, 2>() /= kScale;
+  from_base.topRightCorner<2, 1>() = -moved / kScale;
+  const Eigen::Matrix3d to_base = from_base.inverse();
+  Eigen::Matrix3d hn = from_base * *homography * from_templ.inverse();
+  hn /= hn(2, 2);
+  Eigen::Matrix<double, 8, 1> x;
+  x << hn(0, 0) - 1, hn(0, 1), hn(0, 2), hn(1, 0), hn(1, 1) - 1, hn(1, 2), hn(2, 0), hn(2, 1);
+  auto to_homography = [&](const Eigen::Matrix<double, 8, 1>& v) {
+    Eigen::Matrix3d m;
+    m << 1 + v(0), v(1), v(2), v(3), 1 + v(4), v(5), v(6), v(7), 1;
+    return Eigen::Matrix3d(to_base * m * from_templ);
+  };
+  // Position and local linear map of a homography at p (central differences, 1 px).
+  auto local = [](const Eigen::Matrix3d& h, const Eigen::Vector2d& p, Eigen::Vector2d* c,
+                  Eigen::Matrix2d* m) {
+    auto at = [&](double dx, double dy) {
+      return Eigen::Vector2d((h * Eigen::Vector3d(p.x() + dx, p.y() + dy, 1)).hnormalized());
+    };
+    *c = at(0, 0);
+    m->col(0) = 0.5 * (at(1, 0) - at(-1, 0));
+    m->col(1) = 0.5 * (at(0, 1) - at(0, -1));
+  };
+  const double prior_sigma[8] = {options_.prior_linear_sigma, options_.prior_linear_sigma, 0,
+                                 options_.prior_linear_sigma, options_.prior_linear_sigma, 0,
+                                 options_.prior_perspective_sigma_per_px * kScale,
+                                 options_.prior_perspective_sigma_per_px * kScale};
+  const double eps = 1e-6;
+  for (int iteration = 0; iteration < options_.joint_iterations; ++iteration) {
+    const Eigen::Matrix3d h = to_homography(x);
+    std::vector<Eigen::Matrix<double, Eigen::Dynamic, 8>> rows;
+    std::vector<Eigen::VectorXd> rhs;
+    std::vector<double> energy;
+    for (size_t i = 0; i < points.size(); ++i) {
+      Eigen::Vector2d c;
+      Eigen::Matrix2d m;
+      local(h, points[i], &c, &m);
+      Eigen::VectorXd responses;
+      if (!lsm_.ProjectBase(base_f_, c, m, &responses)) continue;
+      const Eigen::Matrix2d m_inv = m.inverse();
+      Eigen::Matrix<double, 6, 8> chain;
+      for (int k = 0; k < 8; ++k) {
+        Eigen::Matrix<double, 8, 1> xk = x;
+        xk(k) += eps;
+        Eigen::Vector2d ck;
+        Eigen::Matrix2d mk;
+        local(to_homography(xk), points[i], &ck, &mk);
+        // Inverse composition: a local increment (d, D) moves c by -M d and M by -M D.
+        const Eigen::Vector2d d = -m_inv * (ck - c) / eps;
+        const Eigen::Matrix2d big_d = -m_inv * (mk - m) / eps;
+        chain.col(k) << d.x(), big_d(0, 0) * r, big_d(0, 1) * r, d.y(), big_d(1, 0) * r,
+            big_d(1, 1) * r;
+      }
+      rows.push_back(designs[i].leftCols(6) * chain);
+      rhs.push_back(responses - designs[i].col(6));
+      energy.push_back(rhs.back().squaredNorm());
+    }
+    if (rows.size() < 4) return;
+    std::vector<double> sorted = energy;
+    std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+    const double median = std::max(1e-12, sorted[sorted.size() / 2]);
+    const double equation_variance = median / rhs[0].size();
+    Eigen::Matrix<double, 8, 8> normal = Eigen::Matrix<double, 8, 8>::Zero();
+    Eigen::Matrix<double, 8, 1> gradient = Eigen::Matrix<double, 8, 1>::Zero();
+    for (size_t i = 0; i < rows.size(); ++i) {
+      const double w = 1.0 / (1.0 + energy[i] / (9.0 * median)) / equation_variance;
+      normal += w * rows[i].transpose() * rows[i];
+      gradient += w * rows[i].transpose() * rhs[i];
+    }
+    for (int k = 0; k < 8; ++k) {
+      if (prior_sigma[k] <= 0) continue;
+      normal(k, k) += 1.0 / (prior_sigma[k] * prior_sigma[k]);
+      gradient(k) -= x(k) / (prior_sigma[k] * prior_sigma[k]);
+    }
+    const Eigen::Matrix<double, 8, 1> step = normal.ldlt().solve(gradient);
+    if (!step.allFinite()) return;
+    const Eigen::Matrix3d before = to_homography(x);
+    x += step;
+    const Eigen::Matrix3d after = to_homography(x);
+    double motion = 0.0;
+    for (const Eigen::Vector2d& p : points) {
+      motion = std::max(motion, ((after * p.homogeneous()).hnormalized() -
+                                 (before * p.homogeneous()).hnormalized())
+                                    .norm());
+    }
+    if (motion > 10.0) return;  // Runaway: keep the RANSAC result.
+    *homography = after / after(2, 2);
+    if (motion < 0.002) break;
+  }
 }
 
 void FineRegistrar::EqualizeGain(const cv::Mat& valid, int dx, int dy) {

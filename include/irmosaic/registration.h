@@ -55,6 +55,10 @@ struct FineRegistrationOptions {
   // points in a narrow strip leave some terms unobserved; 0 disables (plain RANSAC + LM).
   double prior_linear_sigma = 0.05;
   double prior_perspective_sigma_per_px = 2e-5;
+  // After RANSAC, refine the homography jointly on the FLSM equations of all key-point patches
+  // (FLSM only); far steadier under noise than single-patch tie points.
+  bool joint_refinement = true;
+  int joint_iterations = 10;
   double gain_blur_sigma_px = 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
@@ -110,6 +114,7 @@ class IRMOSAIC_EXPORT FineRegistrar {
 
  private:
   void EqualizeGain(const cv::Mat& valid, int dx, int dy);
+  void JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
