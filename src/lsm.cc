@@ -359,8 +359,8 @@ bool LsmMatcher::ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p,
   return true;
 }
 
-bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c, const Eigen::Matrix2d& m,
-                             Eigen::VectorXd* responses) {
+bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c,
+                             const Eigen::Matrix2d& m, Eigen::VectorXd* responses) {
   if (bank_.rows() == 0 || !WarpPatch(base, c, m, radius_, &warped_)) return false;
   const Eigen::Map<const Eigen::VectorXf> w(warped_.ptr<float>(), warped_.total());
   *responses = (bank_ * w).cast<double>();

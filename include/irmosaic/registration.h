@@ -59,6 +59,12 @@ struct FineRegistrationOptions {
   // (FLSM only); far steadier under noise than single-patch tie points.
   bool joint_refinement = true;
   int joint_iterations = 10;
+  // ... used only when the tie points are too few or their RANSAC fit leaves an inlier RMS
+  // above this (px): on clean pairs single-patch tie points are the more precise.
+  double joint_above_residual_px = 0.15;
+  // Joint-fit accept criterion: predicted std of the homography at the corners of the key
+  // points' box (px).
+  double max_joint_sigma_px = 0.25;
   double gain_blur_sigma_px = 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
@@ -89,6 +95,13 @@ struct PairRegistration {
   double inlier_ratio = 0.0;     // inliers / tie points.
   double residual_rms_px = 0.0;  // Of the inliers against the homography, base pixels.
   Eigen::Vector2d offset = Eigen::Vector2d::Zero();  // The coarse translation used.
+  // Joint FLSM fit (when enabled): patches used, patches agreeing with the homography,
+  // predicted homography std at the key points' box corners (px), and median patch residual
+  // over the expected noise residual.
+  int joint_patches = 0;
+  int joint_inlier_patches = 0;
+  double joint_sigma_px = 0.0;
+  double joint_residual_ratio = 0.0;
 #ifdef IRMOSAIC_HAS_SCD
   ScdResult coarse;  // Filled by PairRegistrar.
 #endif
@@ -114,7 +127,13 @@ class IRMOSAIC_EXPORT FineRegistrar {
 
  private:
   void EqualizeGain(const cv::Mat& valid, int dx, int dy);
-  void JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
+  struct JointFit {
+    int patches = 0, inlier_patches = 0;
+    double sigma_px = 1e9, residual_ratio = 1e9;
+  };
+  JointFit JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
+  bool FitRansac(PairRegistration* out) const;
+  void MarkInliers(PairRegistration* out, double* sum_sq) const;
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
