@@ -262,7 +262,20 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     out.base_from_template.topRightCorner<2, 1>() = offset;
   }
   if (joint) {
-    const JointFit fit = JointRefine(keypoints, &out.base_from_template);
+    // The joint fit needs no corners: a dense grid of patches over the valid area carries
+    // more of the signal than the capped key points.
+    std::vector<Eigen::Vector2d> centres = keypoints;
+    if (options_.joint_grid_step_px > 0) {
+      centres.clear();
+      const cv::Rect box = cv::boundingRect(valid_);
+      const int step = options_.joint_grid_step_px;
+      for (int y = box.y + (box.height % step) / 2; y < box.br().y; y += step) {
+        for (int x = box.x + (box.width % step) / 2; x < box.br().x; x += step) {
+          if (valid_.at<unsigned char>(y, x)) centres.emplace_back(x, y);
+        }
+      }
+    }
+    const JointFit fit = JointRefine(centres, &out.base_from_template);
     out.joint_patches = fit.patches;
     out.joint_inlier_patches = fit.inlier_patches;
     out.joint_sigma_px = fit.sigma_px;
