@@ -333,18 +333,11 @@ Eigen::VectorXd SolveNormal(const Eigen::MatrixXd& normal, const Eigen::VectorXd
 
 }  // namespace
 
-LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
-                                const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
-  LsmResult result;
-  result.position_in_base = c0;
-  result.base_from_template_linear = m0;
+bool LsmMatcher::ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p,
+                                 Eigen::MatrixXd* projected) {
   const int r = radius_, size = 2 * r + 1, n = size * size;
   cv::Mat t;
-  if (!TemplatePatch(templ, p, r, &t)) {
-    result.status = LsmResult::Status::kOutOfBounds;
-    result.reason = "template patch does not fit in the template image";
-    return result;
-  }
+  if (bank_.rows() == 0 || !TemplatePatch(templ, p, r, &t)) return false;
   // Design images of the inverse-compositional LSM, from the template patch: constant over
   // the iterations, so their 21 projections are computed once per key point.
   RowMatrixF design(n, 7);
@@ -362,7 +355,31 @@ LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const
       row << ix, xn * ix, yn * ix, iy, xn * iy, yn * iy, mid[u];
     }
   }
-  const Eigen::MatrixXd projected = (bank_ * design).cast<double>();  // 21 x 7
+  *projected = (bank_ * design).cast<double>();  // 21 x 7
+  return true;
+}
+
+bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c,
+                             const Eigen::Matrix2d& m, Eigen::VectorXd* responses) {
+  if (bank_.rows() == 0 || !WarpPatch(base, c, m, radius_, &warped_)) return false;
+  const Eigen::Map<const Eigen::VectorXf> w(warped_.ptr<float>(), warped_.total());
+  *responses = (bank_ * w).cast<double>();
+  return true;
+}
+
+LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
+                                const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
+  LsmResult result;
+  result.position_in_base = c0;
+  result.base_from_template_linear = m0;
+  const int r = radius_, n = (2 * r + 1) * (2 * r + 1);
+  Eigen::MatrixXd projected;
+  if (!ProjectTemplate(templ, p, &projected)) {
+    result.status = LsmResult::Status::kOutOfBounds;
+    result.reason = "template patch does not fit in the template image";
+    return result;
+  }
+  const double inv_r = 1.0 / r;
   const int unknowns = options_.estimate_gain ? 7 : 6;
   result.condition = NormalisedCondition(projected.leftCols(unknowns));
   if (result.condition == 0.0) {

@@ -232,59 +232,77 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     tie.weight = std::min(1e4, 1.0 / std::max(1e-8, r.position_sigma_px * r.position_sigma_px));
     out.tie_points.push_back(tie);
   }
+  bool joint = options_.joint_refinement && options_.lsm.method == LsmMethod::kFast;
   const int needed = std::max(4, options_.min_inliers);
-  if (static_cast<int>(out.tie_points.size()) < needed) {
-    out.status = PairRegistration::Status::kTooFewTiePoints;
-    out.reason = Figure("converged tie points", out.tie_points.size(), "below", needed) + " (of " +
-                 std::to_string(out.keypoints) + " key points)";
-    return out;
+  bool have_initial = false;
+  if (static_cast<int>(out.tie_points.size()) >= needed) {
+    have_initial = FitRansac(&out);
   }
-
-  std::vector<cv::Point2d> from, to;
-  for (const TiePoint& t : out.tie_points) {
-    from.emplace_back(t.in_template.x(), t.in_template.y());
-    to.emplace_back(t.in_base.x(), t.in_base.y());
+  if (have_initial && joint) {
+    // Clean pairs: the tie points are more precise than the joint fit; keep them.
+    double sum_sq = 0.0;
+    MarkInliers(&out, &sum_sq);
+    const double rms = std::sqrt(sum_sq / std::max(1, out.inliers));
+    joint = out.inliers < needed || rms > options_.joint_above_residual_px;
   }
-  const int method =
-      options_.ransac.method == RansacOptions::Method::kRansac ? cv::RANSAC : cv::USAC_MAGSAC;
-  cv::Mat inlier_mask;
-  const cv::Mat h = cv::findHomography(from, to, method, options_.ransac.threshold_px, inlier_mask,
-                                       options_.ransac.max_iterations, options_.ransac.confidence);
-  if (h.empty() || !cv::checkRange(h)) {
-    out.status = PairRegistration::Status::kRansacFailed;
-    out.reason = "RANSAC found no homography";
-    return out;
+  if (!have_initial) {
+    if (!joint) {
+      out.status = static_cast<int>(out.tie_points.size()) < needed
+                       ? PairRegistration::Status::kTooFewTiePoints
+                       : PairRegistration::Status::kRansacFailed;
+      out.reason = out.status == PairRegistration::Status::kRansacFailed
+                       ? "RANSAC found no homography"
+                       : Figure("converged tie points", out.tie_points.size(), "below", needed) +
+                             " (of " + std::to_string(out.keypoints) + " key points)";
+      return out;
+    }
+    // Too few single-patch matches (heavy noise, low texture): the joint solve starts from
+    // the coarse translation instead.
+    out.base_from_template = Eigen::Matrix3d::Identity();
+    out.base_from_template.topRightCorner<2, 1>() = offset;
   }
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) out.base_from_template(r, c) = h.at<double>(r, c);
-  }
-  out.base_from_template /= out.base_from_template(2, 2);
-  auto mark_inliers = [&](double* sum_sq) {
-    out.inliers = 0;
-    *sum_sq = 0.0;
-    for (TiePoint& t : out.tie_points) {
-      const Eigen::Vector3d q = out.base_from_template * t.in_template.homogeneous();
-      const double e = (q.hnormalized() - t.in_base).norm();
-      t.inlier = e <= options_.ransac.threshold_px;
-      if (t.inlier) {
-        ++out.inliers;
-        *sum_sq += e * e;
+  if (joint) {
+    // The joint fit needs no corners: a dense grid of patches over the valid area carries
+    // more of the signal than the capped key points.
+    std::vector<Eigen::Vector2d> centres = keypoints;
+    if (options_.joint_grid_step_px > 0) {
+      centres.clear();
+      const cv::Rect box = cv::boundingRect(valid_);
+      const int step = options_.joint_grid_step_px;
+      for (int y = box.y + (box.height % step) / 2; y < box.br().y; y += step) {
+        for (int x = box.x + (box.width % step) / 2; x < box.br().x; x += step) {
+          if (valid_.at<unsigned char>(y, x)) centres.emplace_back(x, y);
+        }
       }
     }
-  };
-  double sum_sq = 0.0;
-  if (options_.prior_linear_sigma > 0.0) {
-    mark_inliers(&sum_sq);
-    const double rms = std::sqrt(sum_sq / std::max(1, out.inliers));
-    out.base_from_template =
-        RefineWithPrior(out.tie_points, out.base_from_template, std::max(0.05, rms),
-                        options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
+    const JointFit fit = JointRefine(centres, &out.base_from_template);
+    out.joint_patches = fit.patches;
+    out.joint_inlier_patches = fit.inlier_patches;
+    out.joint_sigma_px = fit.sigma_px;
+    out.joint_residual_ratio = fit.residual_ratio;
+    if (fit.patches < needed) {
+      out.status = PairRegistration::Status::kTooFewTiePoints;
+      out.reason = Figure("key-point patches", fit.patches, "below", needed);
+      return out;
+    }
   }
-  mark_inliers(&sum_sq);
-  out.inlier_ratio = static_cast<double>(out.inliers) / out.tie_points.size();
+  double sum_sq = 0.0;
+  MarkInliers(&out, &sum_sq);
   out.residual_rms_px = out.inliers > 0 ? std::sqrt(sum_sq / out.inliers) : 0.0;
+  out.inlier_ratio =
+      out.tie_points.empty() ? 0.0 : static_cast<double>(out.inliers) / out.tie_points.size();
+  if (joint) {
+    // Quality from the joint fit: patches agreeing with the homography.
+    out.inliers = out.joint_inlier_patches;
+    out.inlier_ratio = static_cast<double>(out.joint_inlier_patches) / out.joint_patches;
+  }
 
   out.status = PairRegistration::Status::kRejected;
+  if (joint && !(out.joint_sigma_px <= options_.max_joint_sigma_px)) {
+    out.reason = Figure("predicted homography sigma", out.joint_sigma_px, "px above",
+                        options_.max_joint_sigma_px);
+    return out;
+  }
   if (out.inliers < options_.min_inliers) {
     out.reason = Figure("inliers", out.inliers, "below", options_.min_inliers);
   } else if (out.inlier_ratio < options_.min_inlier_ratio) {
@@ -296,6 +314,232 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     out.status = PairRegistration::Status::kOk;
   }
   return out;
+}
+
+bool FineRegistrar::FitRansac(PairRegistration* out) const {
+  std::vector<cv::Point2d> from, to;
+  for (const TiePoint& t : out->tie_points) {
+    from.emplace_back(t.in_template.x(), t.in_template.y());
+    to.emplace_back(t.in_base.x(), t.in_base.y());
+  }
+  const int method =
+      options_.ransac.method == RansacOptions::Method::kRansac ? cv::RANSAC : cv::USAC_MAGSAC;
+  cv::Mat inlier_mask;
+  const cv::Mat h = cv::findHomography(from, to, method, options_.ransac.threshold_px, inlier_mask,
+                                       options_.ransac.max_iterations, options_.ransac.confidence);
+  if (h.empty() || !cv::checkRange(h)) return false;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) out->base_from_template(r, c) = h.at<double>(r, c);
+  }
+  out->base_from_template /= out->base_from_template(2, 2);
+  if (options_.prior_linear_sigma > 0.0) {
+    double sum_sq = 0.0;
+    MarkInliers(out, &sum_sq);
+    const double rms = std::sqrt(sum_sq / std::max(1, out->inliers));
+    out->base_from_template =
+        RefineWithPrior(out->tie_points, out->base_from_template, std::max(0.05, rms),
+                        options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
+  }
+  return true;
+}
+
+void FineRegistrar::MarkInliers(PairRegistration* out, double* sum_sq) const {
+  out->inliers = 0;
+  *sum_sq = 0.0;
+  for (TiePoint& t : out->tie_points) {
+    const Eigen::Vector3d q = out->base_from_template * t.in_template.homogeneous();
+    const double e = (q.hnormalized() - t.in_base).norm();
+    t.inlier = e <= options_.ransac.threshold_px;
+    if (t.inlier) {
+      ++out->inliers;
+      *sum_sq += e * e;
+    }
+  }
+}
+
+// Immerkaer's noise estimate: the image convolved with a mask that cancels planes and most
+// smooth texture; the mean absolute response gives the noise sigma.
+static double NoiseSigma(const cv::Mat& image_f) {
+  if (image_f.rows < 3 || image_f.cols < 3) return 0.0;
+  const cv::Mat kernel = (cv::Mat_<float>(3, 3) << 1, -2, 1, -2, 4, -2, 1, -2, 1);
+  cv::Mat response;
+  cv::filter2D(image_f, response, CV_32F, kernel);
+  const cv::Mat inner = response(cv::Rect(1, 1, image_f.cols - 2, image_f.rows - 2));
+  return std::sqrt(M_PI / 2.0) / 6.0 * cv::mean(cv::abs(inner))[0];
+}
+
+FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vector2d>& keypoints,
+                                                   Eigen::Matrix3d* homography) {
+  // All patches share one homography: their 21 filter equations each are stacked into one
+  // Gauss-Newton system in its 8 parameters (plus the distortion prior), with Cauchy weights
+  // per patch against outliers. Many patches average the noise that defeats single ones.
+  constexpr double kScale = 100.0;
+  JointFit fit;
+  const int r = lsm_.patch_radius_px();
+  std::vector<Eigen::Vector2d> points;
+  std::vector<Eigen::MatrixXd> designs;
+  Eigen::Vector2d centre = Eigen::Vector2d::Zero();
+  for (const Eigen::Vector2d& p : keypoints) {
+    Eigen::MatrixXd projected;
+    if (!lsm_.ProjectTemplate(templ_f_, p, &projected)) continue;
+    points.push_back(p);
+    designs.push_back(projected);
+    centre += p;
+  }
+  if (points.size() < 4) return fit;
+  centre /= static_cast<double>(points.size());
+  const Eigen::Vector2d moved = (*homography * centre.homogeneous()).hnormalized();
+  Eigen::Matrix3d from_templ = Eigen::Matrix3d::Identity(), from_base = Eigen::Matrix3d::Identity();
+  from_templ.topLeftCorner<2, 2>() /= kScale;
+  from_templ.topRightCorner<2, 1>() = -centre / kScale;
+  from_base.topLeftCorner<2, 2>() /= kScale;
+  from_base.topRightCorner<2, 1>() = -moved / kScale;
+  const Eigen::Matrix3d to_base = from_base.inverse();
+  Eigen::Matrix3d hn = from_base * *homography * from_templ.inverse();
+  hn /= hn(2, 2);
+  using Params = Eigen::Matrix<double, 8, 1>;
+  Params x;
+  x << hn(0, 0) - 1, hn(0, 1), hn(0, 2), hn(1, 0), hn(1, 1) - 1, hn(1, 2), hn(2, 0), hn(2, 1);
+  auto to_homography = [&](const Params& v) {
+    Eigen::Matrix3d m;
+    m << 1 + v(0), v(1), v(2), v(3), 1 + v(4), v(5), v(6), v(7), 1;
+    return Eigen::Matrix3d(to_base * m * from_templ);
+  };
+  // Position and local linear map of a homography at p (central differences, 1 px).
+  auto local = [](const Eigen::Matrix3d& h, const Eigen::Vector2d& p, Eigen::Vector2d* c,
+                  Eigen::Matrix2d* m) {
+    auto at = [&](double dx, double dy) {
+      return Eigen::Vector2d((h * Eigen::Vector3d(p.x() + dx, p.y() + dy, 1)).hnormalized());
+    };
+    *c = at(0, 0);
+    m->col(0) = 0.5 * (at(1, 0) - at(-1, 0));
+    m->col(1) = 0.5 * (at(0, 1) - at(0, -1));
+  };
+  const double prior_sigma[8] = {options_.prior_linear_sigma,
+                                 options_.prior_linear_sigma,
+                                 0,
+                                 options_.prior_linear_sigma,
+                                 options_.prior_linear_sigma,
+                                 0,
+                                 options_.prior_perspective_sigma_per_px * kScale,
+                                 options_.prior_perspective_sigma_per_px * kScale};
+  std::vector<Eigen::Matrix<double, Eigen::Dynamic, 8>> rows;
+  std::vector<Eigen::VectorXd> rhs;
+  std::vector<double> energy;
+  // Linearises all patches at x; returns the median patch residual energy.
+  auto linearise = [&](const Params& v) {
+    rows.clear(), rhs.clear(), energy.clear();
+    const Eigen::Matrix3d h = to_homography(v);
+    const double eps = 1e-6;
+    for (size_t i = 0; i < points.size(); ++i) {
+      Eigen::Vector2d c;
+      Eigen::Matrix2d m;
+      local(h, points[i], &c, &m);
+      Eigen::VectorXd responses;
+      if (!lsm_.ProjectBase(base_f_, c, m, &responses)) continue;
+      const Eigen::Matrix2d m_inv = m.inverse();
+      Eigen::Matrix<double, 6, 8> chain;
+      for (int k = 0; k < 8; ++k) {
+        Params vk = v;
+        vk(k) += eps;
+        Eigen::Vector2d ck;
+        Eigen::Matrix2d mk;
+        local(to_homography(vk), points[i], &ck, &mk);
+        // Inverse composition: a local increment (d, D) moves c by -M d and M by -M D.
+        const Eigen::Vector2d d = -m_inv * (ck - c) / eps;
+        const Eigen::Matrix2d big_d = -m_inv * (mk - m) / eps;
+        chain.col(k) << d.x(), big_d(0, 0) * r, big_d(0, 1) * r, d.y(), big_d(1, 0) * r,
+            big_d(1, 1) * r;
+      }
+      rows.push_back(designs[i].leftCols(6) * chain);
+      rhs.push_back(responses - designs[i].col(6));
+      energy.push_back(rhs.back().squaredNorm());
+    }
+    if (energy.empty()) return 0.0;
+    std::vector<double> sorted = energy;
+    std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+    return std::max(1e-12, sorted[sorted.size() / 2]);
+  };
+  Eigen::Matrix<double, 8, 8> normal;
+  auto normal_equations = [&](const Params& v, double median, Params* gradient) {
+    const double equation_variance = median / rhs[0].size();
+    normal.setZero();
+    gradient->setZero();
+    for (size_t i = 0; i < rows.size(); ++i) {
+      const double w = 1.0 / (1.0 + energy[i] / (9.0 * median)) / equation_variance;
+      normal += w * rows[i].transpose() * rows[i];
+      *gradient += w * rows[i].transpose() * rhs[i];
+    }
+    for (int k = 0; k < 8; ++k) {
+      if (prior_sigma[k] <= 0) continue;
+      normal(k, k) += 1.0 / (prior_sigma[k] * prior_sigma[k]);
+      (*gradient)(k) -= v(k) / (prior_sigma[k] * prior_sigma[k]);
+    }
+  };
+  const Params start = x;
+  for (int iteration = 0; iteration < options_.joint_iterations; ++iteration) {
+    const double median = linearise(x);
+    if (rows.size() < 4) return fit;
+    Params gradient;
+    normal_equations(x, median, &gradient);
+    const Params step = normal.ldlt().solve(gradient);
+    if (!step.allFinite()) break;
+    const Eigen::Matrix3d before = to_homography(x), after = to_homography(x + step);
+    double motion = 0.0;
+    for (const Eigen::Vector2d& p : points) {
+      motion = std::max(motion, ((after * p.homogeneous()).hnormalized() -
+                                 (before * p.homogeneous()).hnormalized())
+                                    .norm());
+    }
+    if (motion > 10.0) {  // Runaway: back to the start.
+      x = start;
+      break;
+    }
+    x += step;
+    if (motion < 0.002) break;
+  }
+  // Figures at the solution.
+  const double median = linearise(x);
+  fit.patches = static_cast<int>(rows.size());
+  if (fit.patches < 4) return fit;
+  Params gradient;
+  normal_equations(x, median, &gradient);
+  // Expected residual energy of a patch at the right place: noise of both images through 21
+  // orthonormal filters.
+  // Floor: 2 % of the template's contrast stands for interpolation and model error, so clean
+  // images are not judged against a zero noise.
+  cv::Scalar mean, contrast;
+  cv::meanStdDev(templ_f_, mean, contrast);
+  const double floor = 0.02 * contrast[0];
+  const double sigma_base = std::max(floor, NoiseSigma(base_f_));
+  const double sigma_templ = std::max(floor, NoiseSigma(templ_f_));
+  const double expected = rhs[0].size() * (sigma_base * sigma_base + sigma_templ * sigma_templ);
+  const double scale = std::max(median, expected);
+  for (double e : energy) fit.inlier_patches += e <= 4.0 * scale;
+  fit.residual_ratio = median / std::max(expected, 1e-6);
+  const Eigen::Matrix<double, 8, 8> covariance = normal.inverse();
+  double variance = 0.0;
+  const double eps = 1e-6;
+  const Eigen::Matrix3d h = to_homography(x);
+  double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
+  for (const Eigen::Vector2d& p : points) {
+    x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y());
+    x1 = std::max(x1, p.x()), y1 = std::max(y1, p.y());
+  }
+  for (const Eigen::Vector2d& corner : {Eigen::Vector2d(x0, y0), Eigen::Vector2d(x1, y0),
+                                        Eigen::Vector2d(x1, y1), Eigen::Vector2d(x0, y1)}) {
+    Eigen::Matrix<double, 2, 8> j;
+    const Eigen::Vector2d q = (h * corner.homogeneous()).hnormalized();
+    for (int k = 0; k < 8; ++k) {
+      Params vk = x;
+      vk(k) += eps;
+      j.col(k) = ((to_homography(vk) * corner.homogeneous()).hnormalized() - q) / eps;
+    }
+    variance += (j * covariance * j.transpose()).trace() / 2.0;
+  }
+  fit.sigma_px = std::sqrt(variance / 4.0);
+  *homography = h / h(2, 2);
+  return fit;
 }
 
 void FineRegistrar::EqualizeGain(const cv::Mat& valid, int dx, int dy) {

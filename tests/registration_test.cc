@@ -69,7 +69,7 @@ TEST(FineRegistration, CleanSimulatedPairsAreExact) {
 TEST(FineRegistration, DistortedPairsWithGainAndBlurMeetTheIssueBound) {
   // Issue 5: 1 deg attitude error, gain change, blur sigma 2: corner RMSE of the homography over
   // the overlap < 0.3 px in >= 95 % of pairs. The issue also adds noise at PSNR 20 dB; that
-  // part is NOT met yet (1 of 24 pairs within 0.3 px, see docs/benchmarks.md), so it is
+  // part is NOT met yet (2 of 24 pairs within 0.3 px, see docs/benchmarks.md), so it is
   // measured by bench/registration_bench.cc rather than asserted here.
   PairDegradation d;
   d.gain = 0.8;

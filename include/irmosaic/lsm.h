@@ -110,6 +110,14 @@ class IRMOSAIC_EXPORT LsmMatcher {
                   const Eigen::Vector2d& point_in_template, const Eigen::Vector2d& initial_in_base,
                   const Eigen::Matrix2d& initial_linear = Eigen::Matrix2d::Identity());
 
+  // FLSM building blocks for a joint solve over many patches (FLSM method only):
+  // the 21 x 7 filter projections of the template design images [Ix, x Ix, y Ix, Iy, x Iy,
+  // y Iy, I] around p (x, y in units of the patch half-size); false when out of bounds.
+  bool ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p, Eigen::MatrixXd* projected);
+  // The 21 filter responses of `base` sampled at c + M x; false when out of bounds.
+  bool ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c, const Eigen::Matrix2d& m,
+                   Eigen::VectorXd* responses);
+
   // Half-size of the template patch the chosen method reads (pixels); key points must lie at
   // least this far (+1 for gradients) inside the valid areas.
   int patch_radius_px() const { return radius_; }

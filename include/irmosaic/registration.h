@@ -55,6 +55,20 @@ struct FineRegistrationOptions {
   // points in a narrow strip leave some terms unobserved; 0 disables (plain RANSAC + LM).
   double prior_linear_sigma = 0.05;
   double prior_perspective_sigma_per_px = 2e-5;
+  // After RANSAC, refine the homography jointly on the FLSM equations of all key-point patches
+  // (FLSM only); far steadier under noise than single-patch tie points.
+  bool joint_refinement = true;
+  int joint_iterations = 10;
+  // ... used only when the tie points are too few or their RANSAC fit leaves an inlier RMS
+  // above this (px): on clean pairs single-patch tie points are the more precise.
+  double joint_above_residual_px = 0.15;
+  // Patch centres of the joint fit: a grid of this step (px) over the valid area; 0 uses the
+  // key points. Measured at PSNR 20-30 dB: a 16 px grid put slightly more pairs within
+  // 0.3 px but accepted more wrong ones, so the key points are the default.
+  int joint_grid_step_px = 0;
+  // Joint-fit accept criterion: predicted std of the homography at the corners of the key
+  // points' box (px).
+  double max_joint_sigma_px = 0.25;
   double gain_blur_sigma_px = 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
@@ -85,6 +99,13 @@ struct PairRegistration {
   double inlier_ratio = 0.0;     // inliers / tie points.
   double residual_rms_px = 0.0;  // Of the inliers against the homography, base pixels.
   Eigen::Vector2d offset = Eigen::Vector2d::Zero();  // The coarse translation used.
+  // Joint FLSM fit (when enabled): patches used, patches agreeing with the homography,
+  // predicted homography std at the key points' box corners (px), and median patch residual
+  // over the expected noise residual.
+  int joint_patches = 0;
+  int joint_inlier_patches = 0;
+  double joint_sigma_px = 0.0;
+  double joint_residual_ratio = 0.0;
 #ifdef IRMOSAIC_HAS_SCD
   ScdResult coarse;  // Filled by PairRegistrar.
 #endif
@@ -110,6 +131,13 @@ class IRMOSAIC_EXPORT FineRegistrar {
 
  private:
   void EqualizeGain(const cv::Mat& valid, int dx, int dy);
+  struct JointFit {
+    int patches = 0, inlier_patches = 0;
+    double sigma_px = 1e9, residual_ratio = 1e9;
+  };
+  JointFit JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
+  bool FitRansac(PairRegistration* out) const;
+  void MarkInliers(PairRegistration* out, double* sum_sq) const;
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
