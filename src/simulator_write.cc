@@ -89,7 +89,7 @@ void FlightSimulator::WriteFlight(const std::string& dir, const WriteFlightOptio
 
   // The neighbours a pipeline registers, with their true base_from_template: the previous
   // frame of the same sweep and the frame at the same angle in the previous sweep.
-  std::vector<PairRegistration> pairs;
+  std::vector<PairHomography> pairs;
   const int n = options_.frames_per_sweep;
   for (int i = 1; i < frame_count(); ++i) {
     const Eigen::Matrix3d& template_h = truth.frames[i].mosaic_from_image;

@@ -207,7 +207,7 @@ TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
   EXPECT_EQ(scores["runs"][1]["frames_scored"].get<int>(), 16);
   EXPECT_TRUE(fs::exists(dir / "eval.png"));
   // The truth's pairs score 0 against the truth: 7 along each of 2 sweeps, 8 between them.
-  const std::vector<PairRegistration> pairs = LoadPairsJson((dir / "truth_pairs.json").string());
+  const std::vector<PairHomography> pairs = LoadPairsJson((dir / "truth_pairs.json").string());
   EXPECT_EQ(pairs.size(), 22u);
   const PairsScore ps = Evaluator(truth).ScorePairs(pairs);
   EXPECT_EQ(ps.pairs_scored, 22);
