@@ -138,7 +138,6 @@ int RunRun(int argc, char** argv) {
     }
     const PushResult result = mosaicker.Push(frame.index, frame.time_s, frame.image);
     if (!result.placed()) std::cerr << "\nrun: warning: skipped " << result.reason << "\n";
-    if (getenv("IRMOSAIC_DEBUG") && result.placed()) std::cerr << frame.index << " nb " << result.placement.neighbours.size() << " inl " << result.placement.inliers << " " << result.placement.note << "\n";
     progress.Update(done);
   }
   mosaicker.SetReplay(false);

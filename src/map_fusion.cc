@@ -233,6 +233,7 @@ class MapFusion::Impl {
       pair.templ = frame;
       pair.base_points = match.base_points;
       pair.template_points = match.template_points;
+      pair.tie_sigma_px = std::max(options_.tie_sigma_px, match.tie_sigma_px);
       Eigen::Matrix3d h_base;
       double gain_base = 1.0, offset_base = 0.0;
       {
@@ -347,6 +348,7 @@ class MapFusion::Impl {
     std::shared_ptr<Held> base, templ;
     std::vector<Eigen::Vector2d> base_points, template_points;
     std::vector<double> base_values, template_values;
+    double tie_sigma_px = 0.0;
   };
 
   // Keeps at most max_ties_per_pair tie points, evenly spread over the list (the registrar
@@ -363,6 +365,8 @@ class MapFusion::Impl {
     }
     match->base_points = std::move(base);
     match->template_points = std::move(templ);
+    // Fewer points carry the pair's information: each one weighs correspondingly more.
+    match->tie_sigma_px *= std::sqrt(static_cast<double>(cap) / static_cast<double>(n));
   }
 
   // Least squares gain/offset mapping the new frame's values onto its neighbours' compensated
@@ -472,9 +476,9 @@ class MapFusion::Impl {
     problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
     ceres::Problem problem(problem_options);
     ceres::LossFunctionWrapper tie_loss(nullptr, ceres::TAKE_OWNERSHIP);
-    const double inv_tie = 1.0 / (getenv("TSIG") ? atof(getenv("TSIG")) : options_.tie_sigma_px);
     for (const Pair& p : pairs) {
       const size_t a = p.base->slot, b = p.templ->slot;
+      const double inv_tie = 1.0 / std::max(options_.tie_sigma_px, p.tie_sigma_px);
       for (size_t t = 0; t < p.base_points.size(); ++t) {
         problem.AddResidualBlock(new ceres::AutoDiffCostFunction<TieCost, 2, 8, 8>(new TieCost(
                                      current[a].mosaic_from_image, current[b].mosaic_from_image,

@@ -90,6 +90,9 @@ class Mosaicker::Impl : public MosaicSink {
     grid_ = MosaicGrid{gsd};
     georef_ = {lat0, lon0, gsd, frame_->CrsWkt()};
     PairRegistrationOptions registration;
+    // The optimizer weighs each pair by its accuracy, so a pair known to 1 px is still worth
+    // far more than POS (metres); the registration's own stricter default is for single pairs.
+    registration.fine.max_joint_sigma_px = 1.0;
     registrar_ = std::make_unique<PairRegistrar>(registration);
     fusion_ = std::make_unique<MapFusion>(
         options_.fusion, camera_,
@@ -312,10 +315,39 @@ class Mosaicker::Impl : public MosaicSink {
     match.residual_rms_px = r.residual_rms_px;
     match.base_from_template = base.pos_ortho.ortho_from_image.inverse() * r.base_from_template *
                                templ.pos_ortho.ortho_from_image;
-    for (const TiePoint& t : r.tie_points) {
-      if (!t.inlier) continue;
-      match.base_points.push_back(ImageFromOrtho(base.pos_ortho, t.in_base));
-      match.template_points.push_back(ImageFromOrtho(templ.pos_ortho, t.in_template));
+    // Tie points for the optimizer from the pair's homography, on a grid over the overlap
+    // (both masks): evenly spread whatever the key points were, and as many as the
+    // homography's own accuracy supports. Its accuracy at the overlap's corners is the joint
+    // fit's predicted sigma (or the RANSAC residual); spreading that information over n
+    // points inflates each point's sigma by sqrt(n / 4).
+    std::vector<Eigen::Vector2d> in_template, in_base;
+    const cv::Mat& tm = templ.pos_ortho.mask;
+    const cv::Mat& bm = base.pos_ortho.mask;
+    constexpr int kStep = 24;
+    for (int y = kStep / 2; y < tm.rows; y += kStep) {
+      for (int x = kStep / 2; x < tm.cols; x += kStep) {
+        if (tm.at<uint8_t>(y, x) == 0) continue;
+        const Eigen::Vector2d q = ApplyHomography(r.base_from_template, {x, y});
+        const int bx = static_cast<int>(std::lround(q.x())), by = static_cast<int>(std::lround(q.y()));
+        if (bx < 0 || by < 0 || bx >= bm.cols || by >= bm.rows || bm.at<uint8_t>(by, bx) == 0) {
+          continue;
+        }
+        in_template.emplace_back(x, y);
+        in_base.push_back(q);
+      }
+    }
+    if (in_template.size() < 4) {
+      match.ok = false;
+      match.reason = "the registered overlap is too small for tie points";
+      return match;
+    }
+    const double sigma_h = r.joint_patches > 0 ? r.joint_sigma_px
+                                               : r.residual_rms_px / std::sqrt(std::max(1, r.inliers / 4));
+    match.tie_sigma_px =
+        std::max(0.05, sigma_h) * std::sqrt(static_cast<double>(in_template.size()) / 4.0);
+    for (size_t k = 0; k < in_template.size(); ++k) {
+      match.template_points.push_back(ImageFromOrtho(templ.pos_ortho, in_template[k]));
+      match.base_points.push_back(ImageFromOrtho(base.pos_ortho, in_base[k]));
     }
     return match;
   }

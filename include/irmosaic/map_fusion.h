@@ -39,6 +39,9 @@ struct PairMatch {
   std::vector<Eigen::Vector2d> base_points;      // Inlier tie points in the base frame.
   std::vector<Eigen::Vector2d> template_points;  // The same points in the template frame.
   double residual_rms_px = 0.0;
+  // Accuracy (1 sigma, px) of each tie point as the optimizer should weigh it; 0: the
+  // FusionOptions::tie_sigma_px default.
+  double tie_sigma_px = 0.0;
 };
 
 // A frame as the fusion holds it while it can still be a neighbour or be re-rendered.
