@@ -179,5 +179,40 @@ TEST(FineRegistration, ThermalFramesComposeConsistently) {
   }
 }
 
+#ifdef IRMOSAIC_HAS_SCD
+// End to end (SCD + FLSM + RANSAC), compiled once include/irmosaic/scd.h is on the branch: the
+// prior is 12 px off, SCD must find the translation and the homography must meet the bound.
+TEST(PairRegistration, EndToEndFromAPosPrior) {
+  PairDegradation d;
+  d.gain = 0.8;
+  d.offset = 20.0;
+  d.blur_sigma_px = 2.0;
+  d.prior_error_px = 0.0;
+  PairRegistrar registrar;
+  std::mt19937 rng(31);
+  int within = 0, total = 0;
+  for (const char* name : kSources) {
+    const cv::Mat source = LoadGray(name);
+    ASSERT_FALSE(source.empty());
+    for (int i = 0; i < 4; ++i) {
+      const auto pair = MakePair(source, d, i % 2 == 0, &rng);
+      // Predicted position of the template's pixel (0, 0), 12 px off the truth.
+      const Eigen::Vector2d truth_origin =
+          (pair.base_from_template * Eigen::Vector3d(0, 0, 1)).hnormalized();
+      const Eigen::Vector2d prior = truth_origin + Eigen::Vector2d(9.0, -8.0);
+      const PairRegistration r = registrar.Register(pair.base, {}, pair.templ, {}, prior, 40.0);
+      ++total;
+      const double e = r.ok() ? CornerRmse(r.base_from_template, pair.base_from_template,
+                                           pair.overlap_in_template)
+                              : 1e9;
+      within += e < 0.3;
+      if (!r.ok())
+        std::printf("  %s pair %d: %s: %s\n", name, i, ToString(r.status), r.reason.c_str());
+    }
+  }
+  EXPECT_GE(within, 0.95 * total);
+}
+#endif
+
 }  // namespace
 }  // namespace irmosaic
