@@ -1,8 +1,12 @@
 #include "irmosaic/registration.h"
 
 #include <gtest/gtest.h>
+#include <sys/wait.h>
 
 #include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -177,6 +181,36 @@ TEST(FineRegistration, ThermalFramesComposeConsistently) {
                 r01.inliers, r12.inliers, r02.inliers);
     EXPECT_LT(gap, 1.0);
   }
+}
+
+// The CLI: JSON with the status and the homographies on real frames; a clear non-zero exit on
+// an unreadable input.
+TEST(RegisterCli, PrintsJsonAndRefusesUnreadableInput) {
+  const std::string a = testing::SharedDataPath("thermal/seq_1_60_30/1_60_30_0_00028.jpg");
+  const std::string b = testing::SharedDataPath("thermal/seq_1_60_30/1_60_30_0_00029.jpg");
+  const std::string command = testing::CliPath() + " register " + a + " " + b + " 2>/dev/null";
+  FILE* pipe = popen(command.c_str(), "r");
+  ASSERT_NE(pipe, nullptr);
+  std::string text;
+  char buffer[4096];
+  while (size_t n = fread(buffer, 1, sizeof(buffer), pipe)) text.append(buffer, n);
+  const int status = pclose(pipe);
+  EXPECT_EQ(WEXITSTATUS(status), 0) << text;
+  const nlohmann::json json = nlohmann::json::parse(text);
+  EXPECT_EQ(json["status"], "ok");
+  ASSERT_EQ(json["a_from_b"].size(), 3u);
+  Eigen::Matrix3d a_from_b, b_from_a;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) {
+      a_from_b(r, c) = json["a_from_b"][r][c];
+      b_from_a(r, c) = json["b_from_a"][r][c];
+    }
+  }
+  const Eigen::Matrix3d product = a_from_b * b_from_a;
+  EXPECT_LT((product / product(2, 2) - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-9);
+  const int missing = std::system(
+      (testing::CliPath() + " register /nonexistent.png " + b + " >/dev/null 2>&1").c_str());
+  EXPECT_EQ(WEXITSTATUS(missing), 1);
 }
 
 #ifdef IRMOSAIC_HAS_SCD
