@@ -190,7 +190,7 @@ LsmMatcher::LsmMatcher(LsmOptions options) : options_(std::move(options)) {
 }
 
 bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const Eigen::Matrix2d& m,
-                           int r, cv::Mat* out) const {
+                           int r, cv::Mat* out) {
   // Bounds: an affine image of the square is inside the image iff its 4 corners are; the
   // cubic kernel reads one more pixel on each side.
   for (int sy = -1; sy <= 1; sy += 2) {
@@ -212,6 +212,33 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
     w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
     w[3] = 0.5f * t3 - 0.5f * t2;
   };
+  if (m == Eigen::Matrix2d::Identity()) {
+    // Pure translation (the first iterations): one fractional offset for the whole patch, so
+    // the bicubic kernel is separable: a horizontal pass, then a vertical one.
+    const int x0 = static_cast<int>(c.x()) - r, y0 = static_cast<int>(c.y()) - r;
+    float wx[4], wy[4];
+    weights(static_cast<float>(c.x() - static_cast<int>(c.x())), wx);
+    weights(static_cast<float>(c.y() - static_cast<int>(c.y())), wy);
+    rows_.create(size + 3, size, CV_32F);
+    for (int j = 0; j < size + 3; ++j) {
+      const float* p = base.ptr<float>(y0 - 1 + j) + x0 - 1;
+      float* h = rows_.ptr<float>(j);
+      for (int u = 0; u < size; ++u) {
+        h[u] = wx[0] * p[u] + wx[1] * p[u + 1] + wx[2] * p[u + 2] + wx[3] * p[u + 3];
+      }
+    }
+    for (int v = 0; v < size; ++v) {
+      const float* h0 = rows_.ptr<float>(v);
+      const float* h1 = rows_.ptr<float>(v + 1);
+      const float* h2 = rows_.ptr<float>(v + 2);
+      const float* h3 = rows_.ptr<float>(v + 3);
+      float* dst = out->ptr<float>(v);
+      for (int u = 0; u < size; ++u) {
+        dst[u] = wy[0] * h0[u] + wy[1] * h1[u] + wy[2] * h2[u] + wy[3] * h3[u];
+      }
+    }
+    return true;
+  }
   for (int v = 0; v < size; ++v) {
     float* dst = out->ptr<float>(v);
     const double row_x = c.x() + m(0, 0) * (-r) + m(0, 1) * (v - r);

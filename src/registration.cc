@@ -153,6 +153,13 @@ bool FineRegistrationOptions::IsValid(std::string* error) const {
     return fail("ransac.confidence must be in (0, 1)");
   }
   if (margin_px < 0) return fail("margin_px must be >= 0");
+  if (!(gain_blur_sigma_px > 0.0)) return fail("gain_blur_sigma_px must be > 0");
+  if (joint_iterations < 1) return fail("joint_iterations must be >= 1");
+  if (joint_grid_step_px < 0) return fail("joint_grid_step_px must be >= 0");
+  if (!(max_joint_sigma_px > 0.0)) return fail("max_joint_sigma_px must be > 0");
+  if (!(prior_linear_sigma >= 0.0 && prior_perspective_sigma_per_px > 0.0)) {
+    return fail("prior_linear_sigma must be >= 0 and prior_perspective_sigma_per_px > 0");
+  }
   if (min_inliers < 4) return fail("min_inliers must be >= 4 (a homography needs 4 points)");
   if (!(min_inlier_ratio >= 0.0 && min_inlier_ratio <= 1.0)) {
     return fail("min_inlier_ratio must be in [0, 1]");

@@ -1,8 +1,12 @@
 #include "irmosaic/registration.h"
 
 #include <gtest/gtest.h>
+#include <sys/wait.h>
 
 #include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -178,6 +182,71 @@ TEST(FineRegistration, ThermalFramesComposeConsistently) {
     EXPECT_LT(gap, 1.0);
   }
 }
+
+// The CLI: JSON with the status and the homographies on real frames; a clear non-zero exit on
+// an unreadable input.
+TEST(RegisterCli, PrintsJsonAndRefusesUnreadableInput) {
+  const std::string a = testing::SharedDataPath("thermal/seq_1_60_30/1_60_30_0_00028.jpg");
+  const std::string b = testing::SharedDataPath("thermal/seq_1_60_30/1_60_30_0_00029.jpg");
+  const std::string command = testing::CliPath() + " register " + a + " " + b + " 2>/dev/null";
+  FILE* pipe = popen(command.c_str(), "r");
+  ASSERT_NE(pipe, nullptr);
+  std::string text;
+  char buffer[4096];
+  while (size_t n = fread(buffer, 1, sizeof(buffer), pipe)) text.append(buffer, n);
+  const int status = pclose(pipe);
+  EXPECT_EQ(WEXITSTATUS(status), 0) << text;
+  const nlohmann::json json = nlohmann::json::parse(text);
+  EXPECT_EQ(json["status"], "ok");
+  ASSERT_EQ(json["a_from_b"].size(), 3u);
+  Eigen::Matrix3d a_from_b, b_from_a;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) {
+      a_from_b(r, c) = json["a_from_b"][r][c];
+      b_from_a(r, c) = json["b_from_a"][r][c];
+    }
+  }
+  const Eigen::Matrix3d product = a_from_b * b_from_a;
+  EXPECT_LT((product / product(2, 2) - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-9);
+  const int missing = std::system(
+      (testing::CliPath() + " register /nonexistent.png " + b + " >/dev/null 2>&1").c_str());
+  EXPECT_EQ(WEXITSTATUS(missing), 1);
+}
+
+#ifdef IRMOSAIC_HAS_SCD
+// End to end (SCD + FLSM + RANSAC), compiled once include/irmosaic/scd.h is on the branch: the
+// prior is 12 px off, SCD must find the translation and the homography must meet the bound.
+TEST(PairRegistration, EndToEndFromAPosPrior) {
+  PairDegradation d;
+  d.gain = 0.8;
+  d.offset = 20.0;
+  d.blur_sigma_px = 2.0;
+  d.prior_error_px = 0.0;
+  PairRegistrar registrar;
+  std::mt19937 rng(31);
+  int within = 0, total = 0;
+  for (const char* name : kSources) {
+    const cv::Mat source = LoadGray(name);
+    ASSERT_FALSE(source.empty());
+    for (int i = 0; i < 4; ++i) {
+      const auto pair = MakePair(source, d, i % 2 == 0, &rng);
+      // Predicted position of the template's pixel (0, 0), 12 px off the truth.
+      const Eigen::Vector2d truth_origin =
+          (pair.base_from_template * Eigen::Vector3d(0, 0, 1)).hnormalized();
+      const Eigen::Vector2d prior = truth_origin + Eigen::Vector2d(9.0, -8.0);
+      const PairRegistration r = registrar.Register(pair.base, {}, pair.templ, {}, prior, 40.0);
+      ++total;
+      const double e = r.ok() ? CornerRmse(r.base_from_template, pair.base_from_template,
+                                           pair.overlap_in_template)
+                              : 1e9;
+      within += e < 0.3;
+      if (!r.ok())
+        std::printf("  %s pair %d: %s: %s\n", name, i, ToString(r.status), r.reason.c_str());
+    }
+  }
+  EXPECT_GE(within, 0.95 * total);
+}
+#endif
 
 }  // namespace
 }  // namespace irmosaic

@@ -131,13 +131,13 @@ class IRMOSAIC_EXPORT LsmMatcher {
   // Samples base at c + M x for the patch grid x into `out` ((2r+1)^2, CV_32F); false when
   // any sample falls outside the base image.
   bool WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const Eigen::Matrix2d& m, int r,
-                 cv::Mat* out) const;
+                 cv::Mat* out);
 
   LsmOptions options_;
   int radius_ = 0;
   // FLSM: 21 filters, one row each, over the (2 radius_ + 1)^2 patch (row-major pixels).
   Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> bank_;
-  cv::Mat warped_;  // Scratch.
+  cv::Mat warped_, rows_;  // Scratch.
 };
 
 }  // namespace irmosaic

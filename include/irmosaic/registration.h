@@ -50,6 +50,7 @@ struct FineRegistrationOptions {
   // Scale the template to the base's contrast over the overlap before matching (one gain and
   // offset per pair), measured after a Gaussian blur of this sigma.
   bool equalize_gain = true;
+  double gain_blur_sigma_px = 3.0;
   // Prior on the homography's distortion for the final refinement on the inliers: standard
   // deviation of its linear terms from identity and of its perspective terms (per px). Tie
   // points in a narrow strip leave some terms unobserved; 0 disables (plain RANSAC + LM).
@@ -69,7 +70,6 @@ struct FineRegistrationOptions {
   // Joint-fit accept criterion: predicted std of the homography at the corners of the key
   // points' box (px).
   double max_joint_sigma_px = 0.25;
-  double gain_blur_sigma_px = 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
   double min_inlier_ratio = 0.5;
@@ -95,8 +95,11 @@ struct PairRegistration {
   Eigen::Matrix3d base_from_template = Eigen::Matrix3d::Identity();  // Template px -> base px.
   std::vector<TiePoint> tie_points;  // All converged LSM matches, with inlier flags.
   int keypoints = 0;                 // Key points tried.
+  // Tie points within the RANSAC threshold of the final homography; when the joint fit ran,
+  // the patches agreeing with it (joint_inlier_patches) instead. Under heavy noise few tie
+  // points converge: the joint fit can accept a pair whose tie_points hold few inliers.
   int inliers = 0;
-  double inlier_ratio = 0.0;     // inliers / tie points.
+  double inlier_ratio = 0.0;     // inliers / tie points (or / joint patches).
   double residual_rms_px = 0.0;  // Of the inliers against the homography, base pixels.
   Eigen::Vector2d offset = Eigen::Vector2d::Zero();  // The coarse translation used.
   // Joint FLSM fit (when enabled): patches used, patches agreeing with the homography,
