@@ -2,8 +2,12 @@
 #include "irmosaic/tile_store.h"
 
 #include <gdal.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -90,8 +94,9 @@ int MaxLevelsFor(int tile_size) {
 int64_t FloorDiv(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
 template <typename T>
-void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
+bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
                cv::Mat* data, cv::Mat* alpha, const cv::Rect& tile_roi) {
+  bool painted = false;
   for (int y = 0; y < patch_roi.height; ++y) {
     const T* src = image.ptr<T>(patch_roi.y + y) + patch_roi.x;
     const float* w = weight.ptr<float>(patch_roi.y + y) + patch_roi.x;
@@ -103,6 +108,7 @@ void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
       if constexpr (std::is_floating_point_v<T>) {
         if (!std::isfinite(src[x])) continue;
       }
+      painted = true;
       if (covered[x] == 0 || wx >= 1.0f) {
         dst[x] = src[x];
         covered[x] = 255;
@@ -113,6 +119,7 @@ void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
       }
     }
   }
+  return painted;
 }
 
 }  // namespace
@@ -133,6 +140,7 @@ struct TileStore::Impl {
     TileImage image;
     bool dirty = false;    // Painted since its last snapshot by the writer.
     bool writing = false;  // Snapshot taken, file not yet renamed into place: keep in memory.
+    bool shared = false;   // Buffers shared with the writer's snapshot: copy before painting.
     uint64_t last_use = 0;
   };
   std::map<TileIndex, CachedTile> cache;
@@ -149,6 +157,7 @@ struct TileStore::Impl {
   int64_t failed_generation = 0;  // Last generation whose publish failed.
   std::string last_error;
   bool stop = false;
+  bool closed = false;  // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
   std::vector<double> publish_latencies_ms;
   Stats stats;
@@ -323,7 +332,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::map<TileIndex, TileImage> level0;
   for (auto& [index, tile] : cache) {
     if (!tile.dirty) continue;
-    level0[index] = {tile.image.data.clone(), tile.image.alpha.clone()};
+    // Copy-on-write: the snapshot shares the buffers (no copy under the lock); the next Paint
+    // into this tile copies them first.
+    level0[index] = tile.image;
+    tile.shared = true;
     tile.dirty = false;
     tile.writing = true;
     --dirty_count;
@@ -461,6 +473,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 }
 
 void TileStore::Impl::WriterLoop() {
+  // Background work yields to the painting (registration) threads on a busy machine.
+  if (options.writer_nice > 0) {
+    const int tid = static_cast<int>(::syscall(SYS_gettid));
+    errno = 0;
+    const int current = ::getpriority(PRIO_PROCESS, tid);
+    if (errno == 0) ::setpriority(PRIO_PROCESS, tid, std::min(19, current + options.writer_nice));
+  }
   std::unique_lock<std::mutex> lock(mutex);
   for (;;) {
     changed.wait(lock, [&] { return stop || requested_generation > started_generation; });
@@ -635,24 +654,29 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
       const cv::Rect patch_roi(static_cast<int>(x0 - origin_px.x),
                                static_cast<int>(y0 - origin_px.y), static_cast<int>(x1 - x0),
                                static_cast<int>(y1 - y0));
-      if (cv::countNonZero(weight(patch_roi) > 0.0f) == 0) continue;
       const cv::Rect tile_roi(static_cast<int>(x0 - tx), static_cast<int>(y0 - ty), patch_roi.width,
                               patch_roi.height);
       Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
+      if (tile.shared) {
+        tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};
+        tile.shared = false;
+      }
+      bool painted = false;
       switch (s.type) {
         case PixelType::kByte:
-          BlendInto<uint8_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
-                             tile_roi);
+          painted = BlendInto<uint8_t>(image, weight, patch_roi, &tile.image.data,
+                                       &tile.image.alpha, tile_roi);
           break;
         case PixelType::kUInt16:
-          BlendInto<uint16_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
-                              tile_roi);
+          painted = BlendInto<uint16_t>(image, weight, patch_roi, &tile.image.data,
+                                        &tile.image.alpha, tile_roi);
           break;
         case PixelType::kFloat32:
-          BlendInto<float>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha, tile_roi);
+          painted = BlendInto<float>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
+                                     tile_roi);
           break;
       }
-      if (!tile.dirty) {
+      if (painted && !tile.dirty) {
         tile.dirty = true;
         ++s.dirty_count;
       }
@@ -722,8 +746,7 @@ void TileStore::WaitPublished(int64_t generation) {
   Impl& s = *impl_;
   std::unique_lock<std::mutex> lock(s.mutex);
   s.changed.wait(lock, [&] {
-    return s.published_generation >= generation || s.failed_generation >= generation ||
-           (s.stop && !s.writer.joinable());
+    return s.published_generation >= generation || s.failed_generation >= generation || s.closed;
   });
   if (s.published_generation < generation) {
     throw OutputError(s.last_error.empty() ? "store " + s.options.path + " is closed"
@@ -782,6 +805,11 @@ void TileStore::Close() {
     s.changed.notify_all();
   }
   s.writer.join();
+  {
+    std::lock_guard<std::mutex> lock(s.mutex);
+    s.closed = true;
+    s.changed.notify_all();
+  }
   if (!error.empty()) throw OutputError(error);
 }
 
