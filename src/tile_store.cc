@@ -624,8 +624,8 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
 
 void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) {
   Impl& s = *impl_;
-  if (s.read_only || s.stop) {
-    throw Error("TileStore::Paint on a store that is read-only or closed (" + s.options.path + ")");
+  if (s.read_only) {
+    throw Error("TileStore::Paint on a store opened read-only (" + s.options.path + ")");
   }
   if (image.empty()) return;
   if (image.channels() != 1 || image.depth() != CvDepthOf(s.type) || weight.type() != CV_32F ||
@@ -643,6 +643,7 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
   const int64_t col0 = TileIndexOf(origin_px.x, t),
                 col1 = TileIndexOf(origin_px.x + image.cols - 1, t);
   std::unique_lock<std::mutex> lock(s.mutex);
+  if (s.stop) throw Error("TileStore::Paint after Close (" + s.options.path + ")");
   for (int64_t row = row0; row <= row1; ++row) {
     for (int64_t col = col0; col <= col1; ++col) {
       // The part of the patch inside this tile, in patch and tile pixels.
@@ -699,6 +700,11 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
 
 void TileStore::PutFrameRecord(const FrameRecord& record) {
   Impl& s = *impl_;
+  if (record.index < 0) {
+    throw InputError({s.options.path, 0, 0, "FrameRecord.index"},
+                     "frame index " + std::to_string(record.index) + " is negative",
+                     "number frames from 0");
+  }
   std::lock_guard<std::mutex> lock(s.mutex);
   s.frames[record.index] = record;
   s.frames_changed.push_back(record);
@@ -837,7 +843,9 @@ cv::Rect TileStore::level0_bounds_px() const {
   const Impl& s = *impl_;
   std::lock_guard<std::mutex> lock(s.mutex);
   TileSet all = s.level0_on_disk;
-  for (const auto& [index, tile] : s.cache) all.insert(index);
+  for (const auto& [index, tile] : s.cache) {
+    if (tile.dirty || tile.writing) all.insert(index);  // Not the blank tiles of zero weights.
+  }
   if (all.empty()) return {};
   const store::TileBounds b = store::BoundsOf(all);
   const int t = s.options.tile_size;
