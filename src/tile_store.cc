@@ -197,7 +197,7 @@ struct TileStore::Impl {
                            store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi),
                            options.durable);
   }
-  void CleanStaleFiles(int64_t keep_generation_from);
+  void CleanStaleFiles(const store::Manifest& current);
 };
 
 TileStore::Impl::CachedTile& TileStore::Impl::TileLocked(const TileIndex& index,
@@ -301,8 +301,13 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   m.overview_vrts.clear();
   const store::TileBounds bounds = store::BoundsOf(m.levels[0]);
   for (int level = 1; level <= levels; ++level) {
-    const std::string relative =
-        "tiles/" + std::to_string(level) + "/overview_g" + std::to_string(generation) + ".vrt";
+    // Named by the ground it spans, not by generation: a later generation with the same extent
+    // replaces the file (more sources, same geometry), so a reader holding an older mosaic.vrt
+    // that opens its overviews late still finds a file of the geometry it expects.
+    const std::string relative = "tiles/" + std::to_string(level) + "/overview_r" +
+                                 std::to_string(bounds.row0) + "_c" + std::to_string(bounds.col0) +
+                                 "_" + std::to_string(bounds.row1 - bounds.row0) + "x" +
+                                 std::to_string(bounds.col1 - bounds.col0) + ".vrt";
     store::WriteFileAtomic(root / relative, store::BuildLevelVrt(m, level, bounds, {}),
                            options.durable);
     m.overview_vrts.push_back(relative);
@@ -312,16 +317,25 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   store::WriteFileAtomic(root / "manifest.json", store::ManifestToJson(m), options.durable);
 }
 
-void TileStore::Impl::CleanStaleFiles(int64_t keep_generation_from) {
-  // Overview VRTs of old generations: a reader parses them when it opens mosaic.vrt, so the
-  // last few generations are kept for readers that are opening right now.
+void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
+  // Overview VRTs of extents the mosaic has outgrown: GDAL opens a VRT's overviews lazily, when
+  // a zoomed-out read first needs them, so a reader holding an older mosaic.vrt may still ask
+  // for them; they go after an hour (the mosaic outgrows an extent a few hundred times per
+  // flight, so few files wait).
+  const std::set<std::string> in_use(current.overview_vrts.begin(), current.overview_vrts.end());
+  const auto now = fs::file_time_type::clock::now();
   std::error_code error;
   for (const auto& dir : fs::directory_iterator(root / "tiles", error)) {
     for (const auto& entry : fs::directory_iterator(dir.path(), error)) {
       const std::string name = entry.path().filename().string();
-      if (name.rfind("overview_g", 0) == 0) {
-        const int64_t generation = std::atoll(name.c_str() + 10);
-        if (generation < keep_generation_from) fs::remove(entry.path(), error);
+      if (name.rfind("overview_", 0) != 0 || name.size() < 4 ||
+          name.compare(name.size() - 4, 4, ".vrt") != 0) {
+        continue;
+      }
+      const std::string relative = fs::relative(entry.path(), root, error).string();
+      const auto modified = fs::last_write_time(entry.path(), error);
+      if (!error && !in_use.count(relative) && now - modified > std::chrono::hours(1)) {
+        fs::remove(entry.path(), error);
       }
     }
   }
@@ -431,7 +445,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     if (range_changed) WriteQlr(next);
     manifest = std::move(next);
     propagate_pending.clear();
-    CleanStaleFiles(generation - 3);
+    CleanStaleFiles(manifest);
   } catch (const Error& e) {
     error = e.what();
   } catch (const std::exception& e) {
