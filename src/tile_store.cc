@@ -326,6 +326,7 @@ void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
   const auto now = fs::file_time_type::clock::now();
   std::error_code error;
   for (const auto& dir : fs::directory_iterator(root / "tiles", error)) {
+    if (dir.path().filename() == "0") continue;  // Level 0 holds tiles only (and most of them).
     for (const auto& entry : fs::directory_iterator(dir.path(), error)) {
       const std::string name = entry.path().filename().string();
       if (name.rfind("overview_", 0) != 0 || name.size() < 4 ||
