@@ -1,10 +1,11 @@
 // store_bench: cost of the live output per frame, as a flight feeds it.
 //
-// A simulated sweeping flight paints 640x512 UInt16 patches (feathered weights, sensor noise) at
-// 25 frames/s into a TileStore and publishes every --publish_every frames, with the writer on its
-// own thread. For each compression it reports the calling thread's cost per frame (Paint), the
-// writer's work per frame (amortised), publish latency, frame arrival -> published latency, and
-// the store's size per frame. Prints a table and writes JSON (--json FILE).
+// A simulated sweeping flight paints 640x512 UInt16 patches (feathered weights, sensor noise) and
+// puts one footprint record per frame at 25 frames/s into a TileStore and publishes every
+// --publish_every frames, with the writer on its own thread. For each compression it reports the
+// calling thread's cost per frame (Paint), the writer's work per frame (amortised), publish
+// latency, frame arrival -> published latency, and the store's size per frame. Prints a table and
+// writes JSON (--json FILE).
 //
 //   store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE] [--dir DIR]
 #include <unistd.h>
@@ -123,7 +124,18 @@ Result RunFlight(const std::string& compression, int level, const cv::Mat& groun
     const cv::Rect roi(cx - patch.width / 2, cy - patch.height / 2, patch.width, patch.height);
     const cv::Mat image = ground(roi);
     const auto before = Clock::now();
-    store->Paint(image, weight, roi.tl() - cv::Point(ground.cols / 2, ground.rows / 2));
+    const cv::Point origin = roi.tl() - cv::Point(ground.cols / 2, ground.rows / 2);
+    store->Paint(image, weight, origin);
+    irmosaic::FrameRecord record;  // As `run` would: one footprint per frame into frames.gpkg.
+    record.index = i;
+    record.time_s = t;
+    const double x0 = origin.x * 0.5, y0 = -origin.y * 0.5;
+    record.footprint_m = {
+        Eigen::Vector2d(x0, y0), {x0 + 320, y0}, {x0 + 320, y0 - 256}, {x0, y0 - 256}};
+    record.inliers = 150;
+    record.residual_px = 0.4;
+    record.status = "registered";
+    store->PutFrameRecord(record);
     if ((i + 1) % publish_every == 0) generation = store->RequestPublish();
     const auto after = Clock::now();
     paint_ms.push_back(Ms(after - before));
