@@ -70,6 +70,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
               " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
+  } else if (writer_nice < 0 || writer_nice > 19) {
+    problem = "writer_nice " + std::to_string(writer_nice) + " must be in 0..19";
   }
   if (!problem.empty() && error) *error = problem;
   return problem.empty();
