@@ -2,8 +2,12 @@
 #include "irmosaic/tile_store.h"
 
 #include <gdal.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -66,6 +70,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
               " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
+  } else if (writer_nice < 0 || writer_nice > 19) {
+    problem = "writer_nice " + std::to_string(writer_nice) + " must be in 0..19";
   }
   if (!problem.empty() && error) *error = problem;
   return problem.empty();
@@ -90,8 +96,9 @@ int MaxLevelsFor(int tile_size) {
 int64_t FloorDiv(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
 template <typename T>
-void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
+bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
                cv::Mat* data, cv::Mat* alpha, const cv::Rect& tile_roi) {
+  bool painted = false;
   for (int y = 0; y < patch_roi.height; ++y) {
     const T* src = image.ptr<T>(patch_roi.y + y) + patch_roi.x;
     const float* w = weight.ptr<float>(patch_roi.y + y) + patch_roi.x;
@@ -103,6 +110,7 @@ void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
       if constexpr (std::is_floating_point_v<T>) {
         if (!std::isfinite(src[x])) continue;
       }
+      painted = true;
       if (covered[x] == 0 || wx >= 1.0f) {
         dst[x] = src[x];
         covered[x] = 255;
@@ -113,6 +121,7 @@ void BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
       }
     }
   }
+  return painted;
 }
 
 }  // namespace
@@ -133,6 +142,7 @@ struct TileStore::Impl {
     TileImage image;
     bool dirty = false;    // Painted since its last snapshot by the writer.
     bool writing = false;  // Snapshot taken, file not yet renamed into place: keep in memory.
+    bool shared = false;   // Buffers shared with the writer's snapshot: copy before painting.
     uint64_t last_use = 0;
   };
   std::map<TileIndex, CachedTile> cache;
@@ -149,6 +159,7 @@ struct TileStore::Impl {
   int64_t failed_generation = 0;  // Last generation whose publish failed.
   std::string last_error;
   bool stop = false;
+  bool closed = false;  // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
   std::vector<double> publish_latencies_ms;
   Stats stats;
@@ -188,7 +199,7 @@ struct TileStore::Impl {
                            store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi),
                            options.durable);
   }
-  void CleanStaleFiles(int64_t keep_generation_from);
+  void CleanStaleFiles(const store::Manifest& current);
 };
 
 TileStore::Impl::CachedTile& TileStore::Impl::TileLocked(const TileIndex& index,
@@ -292,8 +303,13 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   m.overview_vrts.clear();
   const store::TileBounds bounds = store::BoundsOf(m.levels[0]);
   for (int level = 1; level <= levels; ++level) {
-    const std::string relative =
-        "tiles/" + std::to_string(level) + "/overview_g" + std::to_string(generation) + ".vrt";
+    // Named by the ground it spans, not by generation: a later generation with the same extent
+    // replaces the file (more sources, same geometry), so a reader holding an older mosaic.vrt
+    // that opens its overviews late still finds a file of the geometry it expects.
+    const std::string relative = "tiles/" + std::to_string(level) + "/overview_r" +
+                                 std::to_string(bounds.row0) + "_c" + std::to_string(bounds.col0) +
+                                 "_" + std::to_string(bounds.row1 - bounds.row0) + "x" +
+                                 std::to_string(bounds.col1 - bounds.col0) + ".vrt";
     store::WriteFileAtomic(root / relative, store::BuildLevelVrt(m, level, bounds, {}),
                            options.durable);
     m.overview_vrts.push_back(relative);
@@ -303,16 +319,26 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   store::WriteFileAtomic(root / "manifest.json", store::ManifestToJson(m), options.durable);
 }
 
-void TileStore::Impl::CleanStaleFiles(int64_t keep_generation_from) {
-  // Overview VRTs of old generations: a reader parses them when it opens mosaic.vrt, so the
-  // last few generations are kept for readers that are opening right now.
+void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
+  // Overview VRTs of extents the mosaic has outgrown: GDAL opens a VRT's overviews lazily, when
+  // a zoomed-out read first needs them, so a reader holding an older mosaic.vrt may still ask
+  // for them; they go after an hour (the mosaic outgrows an extent a few hundred times per
+  // flight, so few files wait).
+  const std::set<std::string> in_use(current.overview_vrts.begin(), current.overview_vrts.end());
+  const auto now = fs::file_time_type::clock::now();
   std::error_code error;
   for (const auto& dir : fs::directory_iterator(root / "tiles", error)) {
+    if (dir.path().filename() == "0") continue;  // Level 0 holds tiles only (and most of them).
     for (const auto& entry : fs::directory_iterator(dir.path(), error)) {
       const std::string name = entry.path().filename().string();
-      if (name.rfind("overview_g", 0) == 0) {
-        const int64_t generation = std::atoll(name.c_str() + 10);
-        if (generation < keep_generation_from) fs::remove(entry.path(), error);
+      if (name.rfind("overview_", 0) != 0 || name.size() < 4 ||
+          name.compare(name.size() - 4, 4, ".vrt") != 0) {
+        continue;
+      }
+      const std::string relative = fs::relative(entry.path(), root, error).string();
+      const auto modified = fs::last_write_time(entry.path(), error);
+      if (!error && !in_use.count(relative) && now - modified > std::chrono::hours(1)) {
+        fs::remove(entry.path(), error);
       }
     }
   }
@@ -323,7 +349,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::map<TileIndex, TileImage> level0;
   for (auto& [index, tile] : cache) {
     if (!tile.dirty) continue;
-    level0[index] = {tile.image.data.clone(), tile.image.alpha.clone()};
+    // Copy-on-write: the snapshot shares the buffers (no copy under the lock); the next Paint
+    // into this tile copies them first.
+    level0[index] = tile.image;
+    tile.shared = true;
     tile.dirty = false;
     tile.writing = true;
     --dirty_count;
@@ -419,7 +448,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     if (range_changed) WriteQlr(next);
     manifest = std::move(next);
     propagate_pending.clear();
-    CleanStaleFiles(generation - 3);
+    CleanStaleFiles(manifest);
   } catch (const Error& e) {
     error = e.what();
   } catch (const std::exception& e) {
@@ -461,6 +490,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 }
 
 void TileStore::Impl::WriterLoop() {
+  // Background work yields to the painting (registration) threads on a busy machine.
+  if (options.writer_nice > 0) {
+    const int tid = static_cast<int>(::syscall(SYS_gettid));
+    errno = 0;
+    const int current = ::getpriority(PRIO_PROCESS, tid);
+    if (errno == 0) ::setpriority(PRIO_PROCESS, tid, std::min(19, current + options.writer_nice));
+  }
   std::unique_lock<std::mutex> lock(mutex);
   for (;;) {
     changed.wait(lock, [&] { return stop || requested_generation > started_generation; });
@@ -605,8 +641,8 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
 
 void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) {
   Impl& s = *impl_;
-  if (s.read_only || s.stop) {
-    throw Error("TileStore::Paint on a store that is read-only or closed (" + s.options.path + ")");
+  if (s.read_only) {
+    throw Error("TileStore::Paint on a store opened read-only (" + s.options.path + ")");
   }
   if (image.empty()) return;
   if (image.channels() != 1 || image.depth() != CvDepthOf(s.type) || weight.type() != CV_32F ||
@@ -624,6 +660,7 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
   const int64_t col0 = TileIndexOf(origin_px.x, t),
                 col1 = TileIndexOf(origin_px.x + image.cols - 1, t);
   std::unique_lock<std::mutex> lock(s.mutex);
+  if (s.stop) throw Error("TileStore::Paint after Close (" + s.options.path + ")");
   for (int64_t row = row0; row <= row1; ++row) {
     for (int64_t col = col0; col <= col1; ++col) {
       // The part of the patch inside this tile, in patch and tile pixels.
@@ -635,24 +672,29 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
       const cv::Rect patch_roi(static_cast<int>(x0 - origin_px.x),
                                static_cast<int>(y0 - origin_px.y), static_cast<int>(x1 - x0),
                                static_cast<int>(y1 - y0));
-      if (cv::countNonZero(weight(patch_roi) > 0.0f) == 0) continue;
       const cv::Rect tile_roi(static_cast<int>(x0 - tx), static_cast<int>(y0 - ty), patch_roi.width,
                               patch_roi.height);
       Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
+      if (tile.shared) {
+        tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};
+        tile.shared = false;
+      }
+      bool painted = false;
       switch (s.type) {
         case PixelType::kByte:
-          BlendInto<uint8_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
-                             tile_roi);
+          painted = BlendInto<uint8_t>(image, weight, patch_roi, &tile.image.data,
+                                       &tile.image.alpha, tile_roi);
           break;
         case PixelType::kUInt16:
-          BlendInto<uint16_t>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
-                              tile_roi);
+          painted = BlendInto<uint16_t>(image, weight, patch_roi, &tile.image.data,
+                                        &tile.image.alpha, tile_roi);
           break;
         case PixelType::kFloat32:
-          BlendInto<float>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha, tile_roi);
+          painted = BlendInto<float>(image, weight, patch_roi, &tile.image.data, &tile.image.alpha,
+                                     tile_roi);
           break;
       }
-      if (!tile.dirty) {
+      if (painted && !tile.dirty) {
         tile.dirty = true;
         ++s.dirty_count;
       }
@@ -675,6 +717,11 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
 
 void TileStore::PutFrameRecord(const FrameRecord& record) {
   Impl& s = *impl_;
+  if (record.index < 0) {
+    throw InputError({s.options.path, 0, 0, "FrameRecord.index"},
+                     "frame index " + std::to_string(record.index) + " is negative",
+                     "number frames from 0");
+  }
   std::lock_guard<std::mutex> lock(s.mutex);
   s.frames[record.index] = record;
   s.frames_changed.push_back(record);
@@ -722,8 +769,7 @@ void TileStore::WaitPublished(int64_t generation) {
   Impl& s = *impl_;
   std::unique_lock<std::mutex> lock(s.mutex);
   s.changed.wait(lock, [&] {
-    return s.published_generation >= generation || s.failed_generation >= generation ||
-           (s.stop && !s.writer.joinable());
+    return s.published_generation >= generation || s.failed_generation >= generation || s.closed;
   });
   if (s.published_generation < generation) {
     throw OutputError(s.last_error.empty() ? "store " + s.options.path + " is closed"
@@ -782,6 +828,11 @@ void TileStore::Close() {
     s.changed.notify_all();
   }
   s.writer.join();
+  {
+    std::lock_guard<std::mutex> lock(s.mutex);
+    s.closed = true;
+    s.changed.notify_all();
+  }
   if (!error.empty()) throw OutputError(error);
 }
 
@@ -809,7 +860,9 @@ cv::Rect TileStore::level0_bounds_px() const {
   const Impl& s = *impl_;
   std::lock_guard<std::mutex> lock(s.mutex);
   TileSet all = s.level0_on_disk;
-  for (const auto& [index, tile] : s.cache) all.insert(index);
+  for (const auto& [index, tile] : s.cache) {
+    if (tile.dirty || tile.writing) all.insert(index);  // Not the blank tiles of zero weights.
+  }
   if (all.empty()) return {};
   const store::TileBounds b = store::BoundsOf(all);
   const int t = s.options.tile_size;

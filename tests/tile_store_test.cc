@@ -183,6 +183,36 @@ TEST(TileStoreTest, GdalReadsPaintedMarkersAtTheirGroundPositionWithExactValues)
   store->Close();
 }
 
+TEST(TileStoreTest, AReaderOpenedEarlyStillReadsOverviewsAfterTheMosaicGrew) {
+  const fs::path dir = FreshDir("late_overviews") / "s.irmosaic";
+  auto store = TileStore::Open(Options(dir), Georef());
+  PaintSquare(store.get(), {0, 0}, 600, 3000);  // 3x3 tiles: overview levels exist.
+  store->WaitPublished(store->RequestPublish());
+  GDALAllRegister();
+  GDALDatasetH early = GDALOpen((dir / "mosaic.vrt").c_str(), GA_ReadOnly);
+  ASSERT_NE(early, nullptr);
+  const int width = GDALGetRasterXSize(early);
+  // The mosaic grows westward and southward over several publishes; then the early reader
+  // zooms out (GDAL opens the overview VRTs only now).
+  for (int i = 1; i <= 6; ++i) {
+    PaintSquare(store.get(), {-300 * i, 300 * i}, 300, 3000 + i);
+    store->WaitPublished(store->RequestPublish());
+  }
+  GdalErrorCount errors;
+  GDALRasterBandH overview = GDALGetOverview(GDALGetRasterBand(early, 1), 0);
+  ASSERT_NE(overview, nullptr) << errors.last;
+  EXPECT_EQ(GDALGetRasterBandXSize(overview), width / 2);
+  cv::Mat level1(GDALGetRasterBandYSize(overview), GDALGetRasterBandXSize(overview), CV_16U);
+  EXPECT_EQ(GDALRasterIO(overview, GF_Read, 0, 0, level1.cols, level1.rows, level1.ptr(),
+                         level1.cols, level1.rows, GDT_UInt16, 0, 0),
+            CE_None);
+  // The early extent's content, at its place: the 600x600 square halved.
+  EXPECT_EQ(cv::countNonZero(level1 == 3000), 300 * 300);
+  EXPECT_EQ(errors.count, 0) << errors.last;
+  GDALClose(early);
+  store->Close();
+}
+
 TEST(TileStoreTest, BlendFollowsTheContractAndReadsBack) {
   const fs::path dir = FreshDir("blend") / "s.irmosaic";
   TileStoreOptions options = Options(dir);

@@ -41,6 +41,7 @@ struct TileStoreOptions {
   int overview_levels = -1;      // Overview levels above level 0; -1: grow with the extent.
   size_t max_cached_tiles = 64;  // Memory bound: clean tiles beyond this leave memory.
   bool durable = false;          // fsync each file before its rename (power-loss safety).
+  int writer_nice = 5;           // Writer thread's nice increment (0: same priority as the caller).
   std::string layer_name = "irmosaic";  // Name of the layers in the .qlr file.
 
   // True if usable; otherwise *error says which option is wrong and why.

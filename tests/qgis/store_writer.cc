@@ -1,7 +1,8 @@
 // Test helper for the QGIS tests: writes a store in stages like a flight would.
 //   store_writer STORE 1   creates STORE with a first strip of frames, publishes, exports
 //                          STORE/../export.tif (COG, UTM);
-//   store_writer STORE 2   resumes STORE and adds a second strip (the extent grows).
+//   store_writer STORE 2   resumes STORE and adds a second strip (the extent grows);
+//   store_writer STORE 3   resumes STORE and paints and publishes until killed (crash test).
 #include <cmath>
 #include <filesystem>
 #include <iostream>
@@ -61,6 +62,13 @@ int main(int argc, char** argv) {
                               : irmosaic::TileStoreOptions::Mode::kResume;
     auto store = irmosaic::TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
     const cv::Mat weight = Feather();
+    if (stage == 3) {
+      for (int i = 0;; ++i) {
+        const cv::Point origin(-320 + (i % 12) * 160, 600 + (i / 12) * 200);
+        store->Paint(Scene(origin), weight, origin);
+        if (i % 4 == 3) store->RequestPublish();
+      }
+    }
     for (int i = 0; i < 12; ++i) {
       const int index = (stage - 1) * 12 + i;
       // Stage 1 flies east at row 0; stage 2 flies back west one strip further south.

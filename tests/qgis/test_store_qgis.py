@@ -7,7 +7,10 @@ STORE_WRITER is tests/qgis/store_writer.cc: stage 1 creates a store and exports 
 resumes it with more frames. Exits 0 when every check passes, 1 otherwise (each failure printed).
 """
 import os
+import random
+import signal
 import subprocess
+import time
 import sys
 import tempfile
 
@@ -129,6 +132,21 @@ def main():
           mosaic.extent().area())
     painted, _ = render([reloaded], extent2, reloaded.crs(), 256, "grown")
     check(painted > 0, "render after growth is not empty (%d)" % painted)
+
+    # 5. kill -9 of a writer at a random moment: QGIS still loads and renders the store.
+    random.seed(3)
+    for attempt in range(3):
+        victim = subprocess.Popen([writer, store, "3"])
+        time.sleep(random.uniform(0.3, 1.2))
+        victim.send_signal(signal.SIGKILL)
+        victim.wait()
+        crashed = QgsRasterLayer(os.path.join(store, "mosaic.vrt"), "crashed")
+        painted, _ = render([crashed], crashed.extent(), crashed.crs())
+        check(victim.returncode == -signal.SIGKILL and crashed.isValid() and painted > 0,
+              "after kill -9 #%d the store loads and renders in QGIS (%d)" % (attempt + 1, painted))
+    subprocess.run([writer, store, "2"], check=True)  # Resume after the crashes completes.
+    check(QgsRasterLayer(os.path.join(store, "mosaic.vrt"), "resumed").isValid(),
+          "the resumed store loads")
 
     project.clear()
     print("%d failure(s)" % len(failures))

@@ -1,0 +1,314 @@
+// store_bench: cost of the live output per frame, as a flight feeds it.
+//
+// A simulated sweeping flight paints 640x512 UInt16 patches (feathered weights, sensor noise) and
+// puts one footprint record per frame at 25 frames/s into a TileStore and publishes every
+// --publish_every frames, with the writer on its own thread. For each compression it reports the
+// calling thread's cost per frame (Paint), the writer's work per frame (amortised), publish
+// latency, frame arrival -> published latency, and the store's size per frame. Prints a table and
+// writes JSON (--json FILE).
+//
+//   store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE] [--dir DIR]
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <random>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "irmosaic/local_frame.h"
+#include "irmosaic/tile_store.h"
+
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+double Ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
+
+double Percentile(std::vector<double> values, double q) {
+  if (values.empty()) return 0.0;
+  std::sort(values.begin(), values.end());
+  const size_t i = std::min(
+      values.size() - 1,
+      static_cast<size_t>(std::ceil(q * static_cast<double>(values.size()))) - (q > 0 ? 1 : 0));
+  return values[i];
+}
+
+// The ground the flight sees: smooth thermal structure, warm blobs and sensor noise (16-bit).
+cv::Mat MakeGround(int size) {
+  cv::Mat ground(size, size, CV_16U);
+  std::mt19937 random(7);
+  std::normal_distribution<float> noise(0.0f, 12.0f);
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      const double smooth = 7500 + 250 * std::sin(x / 110.0) * std::cos(y / 90.0) + 0.2 * x;
+      const double blob = std::exp(
+          -(std::pow(std::fmod(x, 350.0) - 175, 2) + std::pow(std::fmod(y, 410.0) - 205, 2)) /
+          900.0);
+      ground.at<uint16_t>(y, x) = cv::saturate_cast<uint16_t>(smooth + 900 * blob + noise(random));
+    }
+  }
+  return ground;
+}
+
+cv::Mat Feather(cv::Size size) {
+  cv::Mat weight(size, CV_32F);
+  for (int y = 0; y < size.height; ++y) {
+    for (int x = 0; x < size.width; ++x) {
+      const int d = std::min({x, y, size.width - 1 - x, size.height - 1 - y});
+      weight.at<float>(y, x) = std::min(1.0f, (d + 1) / 24.0f);
+    }
+  }
+  return weight;
+}
+
+struct Result {
+  std::string compression;
+  int frames = 0;
+  double paint_mean_ms = 0, paint_p99_ms = 0, paint_max_ms = 0;
+  double writer_ms_per_frame = 0;
+  double publish_p50_ms = 0, publish_p99_ms = 0, publish_max_ms = 0;
+  double frame_to_published_p50_ms = 0, frame_to_published_p99_ms = 0,
+         frame_to_published_max_ms = 0;
+  double store_kb_per_frame = 0, written_kb_per_frame = 0;
+  int64_t tiles_written = 0, publishes = 0;
+  double wall_s = 0;
+};
+
+Result RunFlight(const std::string& compression, int level, const cv::Mat& ground, int frames,
+                 int publish_every, double fps, const fs::path& dir) {
+  fs::remove_all(dir);
+  const irmosaic::LocalFrame frame(47.2, 8.5);
+  irmosaic::TileStoreOptions options;
+  options.path = dir.string();
+  options.compression = compression;
+  options.compression_level = level;
+  auto store = irmosaic::TileStore::Open(options, {47.2, 8.5, 0.5, frame.CrsWkt()});
+  const cv::Size patch(640, 512);
+  const cv::Mat weight = Feather(patch);
+
+  // Publication times, watched from another thread (what a reader would experience).
+  std::mutex mutex;
+  std::vector<Clock::time_point> published_at(frames / publish_every + 4, Clock::time_point{});
+  std::thread watcher([&] {
+    for (int64_t g = 1; g < static_cast<int64_t>(published_at.size()); ++g) {
+      try {
+        store->WaitPublished(g);
+      } catch (...) {
+        return;
+      }
+      std::lock_guard<std::mutex> lock(mutex);
+      published_at[g] = Clock::now();
+    }
+  });
+
+  std::vector<double> paint_ms;
+  std::vector<std::pair<Clock::time_point, int64_t>> arrivals;  // (painted, generation)
+  const auto start = Clock::now();
+  int64_t generation = 0;
+  for (int i = 0; i < frames; ++i) {
+    // Oblique sweep: across-track +-1100 px with a 2 s period, along-track 20 px/s.
+    const double t = i / fps;
+    const int cx = static_cast<int>(ground.cols / 2 + 1100 * std::sin(2 * M_PI * t / 2.0));
+    const int cy = static_cast<int>(ground.rows - 600 - 20 * t);
+    const cv::Rect roi(cx - patch.width / 2, cy - patch.height / 2, patch.width, patch.height);
+    const cv::Mat image = ground(roi);
+    const auto before = Clock::now();
+    const cv::Point origin = roi.tl() - cv::Point(ground.cols / 2, ground.rows / 2);
+    store->Paint(image, weight, origin);
+    irmosaic::FrameRecord record;  // As `run` would: one footprint per frame into frames.gpkg.
+    record.index = i;
+    record.time_s = t;
+    const double x0 = origin.x * 0.5, y0 = -origin.y * 0.5;
+    record.footprint_m = {
+        Eigen::Vector2d(x0, y0), {x0 + 320, y0}, {x0 + 320, y0 - 256}, {x0, y0 - 256}};
+    record.inliers = 150;
+    record.residual_px = 0.4;
+    record.status = "registered";
+    store->PutFrameRecord(record);
+    if ((i + 1) % publish_every == 0) generation = store->RequestPublish();
+    const auto after = Clock::now();
+    paint_ms.push_back(Ms(after - before));
+    arrivals.emplace_back(after, (i + 1) % publish_every == 0 ? generation : generation + 1);
+    std::this_thread::sleep_until(start + std::chrono::duration_cast<Clock::duration>(
+                                              std::chrono::duration<double>((i + 1) / fps)));
+  }
+  generation = store->RequestPublish();
+  store->WaitPublished(generation);
+  const double wall_s = Ms(Clock::now() - start) / 1000.0;
+  store->Close();
+  watcher.join();
+
+  const irmosaic::TileStore::Stats stats = store->stats();
+  Result r;
+  r.compression = compression + (compression == "NONE" ? "" : " " + std::to_string(level));
+  r.frames = frames;
+  double sum = 0;
+  for (double v : paint_ms) sum += v;
+  r.paint_mean_ms = sum / frames;
+  r.paint_p99_ms = Percentile(paint_ms, 0.99);
+  r.paint_max_ms = Percentile(paint_ms, 1.0);
+  r.writer_ms_per_frame = stats.writer_busy_ms / frames;
+  r.publish_p50_ms = stats.publish_p50_ms;
+  r.publish_p99_ms = stats.publish_p99_ms;
+  r.publish_max_ms = stats.publish_max_ms;
+  std::vector<double> latency;
+  for (const auto& [painted, g] : arrivals) {
+    const int64_t gen = std::min<int64_t>(g, static_cast<int64_t>(published_at.size()) - 1);
+    // The final publish (Close) may fall outside the watched range: skip those few frames.
+    if (published_at[gen] != Clock::time_point{})
+      latency.push_back(Ms(published_at[gen] - painted));
+  }
+  r.frame_to_published_p50_ms = Percentile(latency, 0.5);
+  r.frame_to_published_p99_ms = Percentile(latency, 0.99);
+  r.frame_to_published_max_ms = Percentile(latency, 1.0);
+  int64_t store_bytes = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (entry.is_regular_file()) store_bytes += static_cast<int64_t>(entry.file_size());
+  }
+  r.store_kb_per_frame = store_bytes / 1024.0 / frames;
+  r.written_kb_per_frame = stats.bytes_written / 1024.0 / frames;
+  r.tiles_written = stats.tiles_written;
+  r.publishes = stats.publishes;
+  r.wall_s = wall_s;
+  return r;
+}
+
+// Publish time of 25 changed frame records when frames.gpkg already holds `existing` records
+// (the file is copied, updated and renamed on each such publish). Median of 5 publishes.
+double FramesPublishMs(int existing, const fs::path& dir) {
+  fs::remove_all(dir);
+  const irmosaic::LocalFrame frame(47.2, 8.5);
+  irmosaic::TileStoreOptions options;
+  options.path = dir.string();
+  auto store = irmosaic::TileStore::Open(options, {47.2, 8.5, 0.5, frame.CrsWkt()});
+  const auto put = [&](int index) {
+    irmosaic::FrameRecord record;
+    record.index = index;
+    record.time_s = index / 25.0;
+    record.footprint_m = {
+        Eigen::Vector2d(index, 0), {index + 320.0, 0}, {index + 320.0, -256}, {index, -256}};
+    record.status = "registered";
+    store->PutFrameRecord(record);
+  };
+  for (int i = 0; i < existing; ++i) put(i);
+  store->WaitPublished(store->RequestPublish());
+  std::vector<double> ms;
+  for (int round = 0; round < 5; ++round) {
+    for (int i = 0; i < 25; ++i) put(existing + round * 25 + i);
+    const auto start = Clock::now();
+    store->WaitPublished(store->RequestPublish());
+    ms.push_back(Ms(Clock::now() - start));
+  }
+  store->Close();
+  fs::remove_all(dir);
+  return Percentile(ms, 0.5);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  int frames = 375, publish_every = 12;
+  double fps = 25.0;
+  std::string json_path;
+  fs::path dir = fs::temp_directory_path() / ("store_bench_" + std::to_string(::getpid()));
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string key = argv[i], value = argv[i + 1];
+    if (key == "--frames")
+      frames = std::stoi(value);
+    else if (key == "--publish_every")
+      publish_every = std::stoi(value);
+    else if (key == "--fps")
+      fps = std::stod(value);
+    else if (key == "--json")
+      json_path = value;
+    else if (key == "--dir")
+      dir = value;
+    else {
+      std::cerr << "usage: store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE]"
+                   " [--dir DIR]\n";
+      return 2;
+    }
+  }
+  const cv::Mat ground = MakeGround(4096);
+  const std::vector<std::pair<std::string, int>> configs = {
+      {"ZSTD", 1}, {"ZSTD", 9}, {"DEFLATE", 1}, {"DEFLATE", 6}, {"NONE", 1}};
+  std::vector<Result> results;
+  for (const auto& [compression, level] : configs) {
+    results.push_back(
+        RunFlight(compression, level, ground, frames, publish_every, fps, dir / compression));
+  }
+  std::vector<std::pair<int, double>> frames_cost;
+  for (int existing : {1000, 15000}) {
+    frames_cost.emplace_back(existing, FramesPublishMs(existing, dir / "frames"));
+  }
+  fs::remove_all(dir);
+
+  std::cout << "store_bench: " << frames << " frames of 640x512 UInt16 at " << fps
+            << " fps, publish every " << publish_every << " frames, tile 512\n\n";
+  std::cout << std::left << std::setw(11) << "compress" << std::right << std::setw(10) << "paint ms"
+            << std::setw(9) << "p99" << std::setw(9) << "max" << std::setw(11) << "writer ms"
+            << std::setw(12) << "publish p50" << std::setw(8) << "p99" << std::setw(13)
+            << "frame->pub" << std::setw(8) << "p99" << std::setw(10) << "KB/frame" << std::setw(12)
+            << "written KB"
+            << "\n";
+  nlohmann::json json = nlohmann::json::array();
+  std::cout << std::fixed;
+  for (const Result& r : results) {
+    std::cout << std::left << std::setw(11) << r.compression << std::right << std::setprecision(2)
+              << std::setw(10) << r.paint_mean_ms << std::setw(9) << r.paint_p99_ms << std::setw(9)
+              << r.paint_max_ms << std::setw(11) << r.writer_ms_per_frame << std::setprecision(1)
+              << std::setw(12) << r.publish_p50_ms << std::setw(8) << r.publish_p99_ms
+              << std::setw(13) << r.frame_to_published_p50_ms << std::setw(8)
+              << r.frame_to_published_p99_ms << std::setw(10) << r.store_kb_per_frame
+              << std::setw(12) << r.written_kb_per_frame << "\n";
+    json.push_back({{"compression", r.compression},
+                    {"frames", r.frames},
+                    {"paint_mean_ms", r.paint_mean_ms},
+                    {"paint_p99_ms", r.paint_p99_ms},
+                    {"paint_max_ms", r.paint_max_ms},
+                    {"writer_ms_per_frame", r.writer_ms_per_frame},
+                    {"output_ms_per_frame_amortised", r.paint_mean_ms + r.writer_ms_per_frame},
+                    {"publish_p50_ms", r.publish_p50_ms},
+                    {"publish_p99_ms", r.publish_p99_ms},
+                    {"publish_max_ms", r.publish_max_ms},
+                    {"frame_to_published_p50_ms", r.frame_to_published_p50_ms},
+                    {"frame_to_published_p99_ms", r.frame_to_published_p99_ms},
+                    {"frame_to_published_max_ms", r.frame_to_published_max_ms},
+                    {"store_kb_per_frame", r.store_kb_per_frame},
+                    {"written_kb_per_frame", r.written_kb_per_frame},
+                    {"tiles_written", r.tiles_written},
+                    {"publishes", r.publishes},
+                    {"wall_s", r.wall_s}});
+  }
+  std::cout << "\npaint ms: calling thread per frame (Paint + RequestPublish); writer ms: writer "
+               "thread work per frame, amortised;\nframe->pub: a frame's Paint to its generation "
+               "published (ms); KB/frame: final store size / frames.\n";
+  nlohmann::json frames_json = nlohmann::json::array();
+  for (const auto& [existing, ms] : frames_cost) {
+    std::cout << "publish of 25 frame records with " << existing
+              << " already in frames.gpkg: " << std::setprecision(1) << ms << " ms (median)\n";
+    frames_json.push_back({{"existing_records", existing}, {"publish_ms_median", ms}});
+  }
+  if (!json_path.empty()) {
+    std::ofstream(json_path) << nlohmann::json{{"benchmark", "store_bench"},
+                                               {"frames", frames},
+                                               {"fps", fps},
+                                               {"publish_every", publish_every},
+                                               {"results", json},
+                                               {"frames_gpkg", frames_json}}
+                                    .dump(1)
+                             << "\n";
+  }
+  return 0;
+}
