@@ -75,7 +75,7 @@ class IRMOSAIC_EXPORT MosaicSink {
 struct FusionOptions {
   int window_frames = 300;              // Sliding window of the global optimization.
   int solve_every_frames = 8;           // A window solve starts after this many new frames.
-  int max_neighbours = 3;               // Registrations per new frame.
+  int max_neighbours = 2;               // Registrations per new frame (previous + best other).
   int max_ties_per_pair = 24;           // Tie points kept per pair for the optimizer.
   double min_overlap_fraction = 0.08;   // Of the smaller footprint, to try a pair.
   double pos_sigma_px = 6.0;            // POS placement accuracy (1 sigma, px) for frames that

@@ -1,0 +1,131 @@
+// Map fusion at flight length (paper Fig. 10): placement RMSE against frame index with and
+// without the global optimization, mapping latency per frame while the optimizer runs, and the
+// optimizer's time per window. Registration is the ideal registrar of tests/fusion_sweep.h
+// (true tie points + Gaussian noise), so the figures isolate the fusion.
+// Usage: fusion_bench [--frames N] [--rate FPS] [--json FILE] [--plot FILE.png]
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <thread>
+
+#include "../tests/fusion_sweep.h"
+#include "irmosaic/evaluator.h"
+
+using namespace irmosaic;
+using Clock = std::chrono::steady_clock;
+
+struct Result {
+  std::vector<double> rmse, seam, latency_ms;
+  FusionStats stats;
+};
+
+Result Run(const testing::Sweep& s, bool optimize, double rate_fps) {
+  FusionOptions options;
+  options.optimize = optimize;
+  options.render = false;
+  options.solve_every_frames = 25;
+  MapFusion fusion(options, s.camera, testing::IdealRegistrar(s, 0.15, 11), nullptr);
+  const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+  Result r;
+  const auto start = Clock::now();
+  for (size_t i = 0; i < s.pos.size(); ++i) {
+    FusionFrame f;
+    f.index = static_cast<int64_t>(i);
+    f.time_s = i / 25.0;
+    f.image = image;
+    f.pos_mosaic_from_image = s.pos[i];
+    f.prior_sqrt_information = s.prior[i];
+    const auto t0 = Clock::now();
+    fusion.Push(std::move(f));
+    r.latency_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+    std::this_thread::sleep_until(start + std::chrono::microseconds(
+                                              static_cast<int64_t>(1e6 * (i + 1) / rate_fps)));
+  }
+  fusion.Finish();
+  const auto placements = fusion.Placements();
+  for (const FramePlacement& p : placements) {
+    r.rmse.push_back(testing::PlacementRmse(p.mosaic_from_image, s.truth[p.index], s.camera));
+  }
+  for (size_t j = 1; j < placements.size(); ++j) {
+    r.seam.push_back(testing::SeamRmse(placements, s, static_cast<int64_t>(j) - 1, j));
+  }
+  r.stats = fusion.stats();
+  return r;
+}
+
+double Percentile(std::vector<double> v, double q) {
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<size_t>(q * v.size()))];
+}
+double Mean(const std::vector<double>& v) {
+  double sum = 0;
+  for (double x : v) sum += x;
+  return sum / v.size();
+}
+
+int main(int argc, char** argv) {
+  int frames = 2000;
+  double rate = 100.0;
+  std::string json_path, plot_path;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string a = argv[i];
+    if (a == "--frames") frames = std::stoi(argv[i + 1]);
+    if (a == "--rate") rate = std::stod(argv[i + 1]);
+    if (a == "--json") json_path = argv[i + 1];
+    if (a == "--plot") plot_path = argv[i + 1];
+  }
+  const testing::Sweep s = testing::MakeSweep(frames, 6, 2.0, 0.3, 7);
+  std::vector<double> pos_rmse;
+  for (int i = 0; i < frames; ++i) pos_rmse.push_back(testing::PlacementRmse(s.pos[i], s.truth[i], s.camera));
+  const Result with = Run(s, true, rate), without = Run(s, false, rate);
+  std::printf("%-22s %10s %10s %10s %10s %10s %12s\n", "run", "mean_px", "p95_px", "max_px",
+              "seam_px", "lat_p50ms", "lat_p99ms");
+  auto row = [&](const char* name, const Result& r) {
+    std::printf("%-22s %10.3f %10.3f %10.3f %10.3f %10.3f %12.3f\n", name, Mean(r.rmse),
+                Percentile(r.rmse, 0.95), Percentile(r.rmse, 1.0), Mean(r.seam),
+                Percentile(r.latency_ms, 0.5), Percentile(r.latency_ms, 0.99));
+  };
+  std::printf("%-22s %10.3f %10.3f %10.3f\n", "POS only", Mean(pos_rmse), Percentile(pos_rmse, 0.95),
+              Percentile(pos_rmse, 1.0));
+  row("with optimization", with);
+  row("without optimization", without);
+  std::printf("optimizer: %lld solves, mean %.0f ms, max %.0f ms per window, lag at the end %lld frames\n",
+              static_cast<long long>(with.stats.solves),
+              with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0,
+              with.stats.max_solve_ms, static_cast<long long>(with.stats.optimizer_lag_frames));
+  if (!plot_path.empty()) {
+    std::vector<PlacementScore> scores(3);
+    const std::vector<const std::vector<double>*> series = {&with.rmse, &without.rmse, &pos_rmse};
+    const char* names[] = {"with global optimization", "without (real-time mapping only)", "POS only"};
+    for (int k = 0; k < 3; ++k) {
+      scores[k].name = names[k];
+      scores[k].rmse_px = ComputeErrorStats(*series[k]);
+      scores[k].frames_scored = static_cast<int>(series[k]->size());
+      for (size_t i = 0; i < series[k]->size(); ++i) {
+        FrameScore f;
+        f.index = static_cast<int>(i);
+        f.rmse_px = (*series[k])[i];
+        scores[k].frames.push_back(f);
+      }
+    }
+    PlotRmseVsIndex(scores, plot_path, "Placement RMSE vs frame index (ideal registrar)");
+  }
+  if (!json_path.empty()) {
+    nlohmann::json doc = {
+        {"benchmark", "fusion"}, {"frames", frames}, {"rate_fps", rate},
+        {"pos_only", {{"mean_px", Mean(pos_rmse)}, {"max_px", Percentile(pos_rmse, 1.0)}}},
+        {"with_optimization", {{"mean_px", Mean(with.rmse)}, {"p95_px", Percentile(with.rmse, 0.95)},
+                               {"max_px", Percentile(with.rmse, 1.0)}, {"seam_mean_px", Mean(with.seam)},
+                               {"latency_p50_ms", Percentile(with.latency_ms, 0.5)},
+                               {"latency_p99_ms", Percentile(with.latency_ms, 0.99)},
+                               {"solves", with.stats.solves}, {"max_solve_ms", with.stats.max_solve_ms},
+                               {"rmse_px", with.rmse}}},
+        {"without_optimization", {{"mean_px", Mean(without.rmse)}, {"max_px", Percentile(without.rmse, 1.0)},
+                                  {"seam_mean_px", Mean(without.seam)}, {"rmse_px", without.rmse}}}};
+    std::ofstream(json_path) << doc.dump(1) << "\n";
+  }
+  return 0;
+}
