@@ -61,7 +61,7 @@ struct ScdOptions {
   // it, evaluated on the base gradients resampled (cubic) at those sub-pixel shifts: removes
   // most of the fit's bias on a peak that is not a parabola. 0 disables (5 evaluations fewer).
   double subpixel_step_px = 0.4;
-  ScdPeakCriterion peak_criterion = ScdPeakCriterion::kSignificance;
+  ScdPeakCriterion peak_criterion = ScdPeakCriterion::kScd;
   // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
   // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
   // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
