@@ -543,6 +543,17 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   const int grow = max_steps + 1;
   const cv::Rect templ_rect(0, 0, templ.cols, templ.rows), base_rect(0, 0, base.cols, base.rows);
   cv::Rect t_roi = templ_rect & (base_rect - start);
+  if (!t_roi.empty() && (!templ_mask.empty() || !base_mask.empty())) {
+    // Only the bounding box of the valid overlap: with irregular masks it is much smaller.
+    if (templ_mask.empty()) {
+      cv::compare(base_mask(t_roi + start), 0, tmp_, cv::CMP_NE);
+    } else if (base_mask.empty()) {
+      cv::compare(templ_mask(t_roi), 0, tmp_, cv::CMP_NE);
+    } else {
+      cv::bitwise_and(templ_mask(t_roi), base_mask(t_roi + start), tmp_);
+    }
+    t_roi = cv::boundingRect(tmp_) + t_roi.tl();
+  }
   t_roi =
       cv::Rect(t_roi.x - grow, t_roi.y - grow, t_roi.width + 2 * grow, t_roi.height + 2 * grow) &
       templ_rect;
@@ -697,23 +708,44 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
     status =
         FftSearch(fine_, base, base_mask, templ, templ_mask, templ_valid_px, lo, hi, &peak, &error);
   } else {
-    Reduce(base, base_mask, f, &base_small_, &base_mask_small_, &reduce_tmp_);
-    Reduce(templ, templ_mask, f, &templ_small_, &templ_mask_small_, &reduce_tmp_);
-    const double templ_valid_small = templ_mask_small_.empty()
-                                         ? static_cast<double>(templ_small_.total())
-                                         : cv::countNonZero(templ_mask_small_);
-    // Full offset u = f * coarse offset U; the coarse window covers the fine one.
+    // Reduce only what the window can use (plus context for the coarse blur and erosion),
+    // from corners on multiples of f so that reduced pixels tile the full ones exactly.
+    const cv::Rect t_need(
+        cv::Point(std::max(0, -hi.x), std::max(0, -hi.y)),
+        cv::Point(std::min(templ.cols, base.cols - lo.x), std::min(templ.rows, base.rows - lo.y)));
+    const cv::Rect b_need(cv::Point(std::max(0, t_need.x + lo.x), std::max(0, t_need.y + lo.y)),
+                          cv::Point(std::min(base.cols, t_need.br().x + hi.x),
+                                    std::min(base.rows, t_need.br().y + hi.y)));
+    const int pad = f * (std::max(coarse_.erode_px, coarse_.gauss.rows / 2 + 2) + 2);
+    auto crop = [f, pad](const cv::Rect& need, const cv::Mat& image) {
+      const int x0 = std::max(0, need.x - pad) / f * f, y0 = std::max(0, need.y - pad) / f * f;
+      const int x1 = std::min(image.cols, need.br().x + pad);
+      const int y1 = std::min(image.rows, need.br().y + pad);
+      return cv::Rect(cv::Point(x0, y0), cv::Point(x1, y1));
+    };
+    const cv::Rect t_crop = crop(t_need, templ), b_crop = crop(b_need, base);
+    if (t_crop.width < f || t_crop.height < f || b_crop.width < f || b_crop.height < f) {
+      return fail(Status::kTooLittleOverlap, "the images overlap by less than a reduced pixel");
+    }
+    Reduce(base(b_crop), base_mask.empty() ? cv::Mat() : base_mask(b_crop), f, &base_small_,
+           &base_mask_small_, &reduce_tmp_);
+    Reduce(templ(t_crop), templ_mask.empty() ? cv::Mat() : templ_mask(t_crop), f, &templ_small_,
+           &templ_mask_small_, &reduce_tmp_);
+    // Template crop pixel i <-> template f i + T0, base crop j <-> base f j + B0, so the full
+    // offset is u = f (j - i) + (B0 - T0); the coarse window covers the fine one.
+    const cv::Point shift = b_crop.tl() - t_crop.tl();
     auto floor_div = [f](int a) { return a >= 0 ? a / f : -((-a + f - 1) / f); };
-    const cv::Point lo_small(floor_div(lo.x), floor_div(lo.y));
-    const cv::Point hi_small(floor_div(hi.x + f - 1), floor_div(hi.y + f - 1));
+    const cv::Point lo_small(floor_div(lo.x - shift.x), floor_div(lo.y - shift.y));
+    const cv::Point hi_small(floor_div(hi.x - shift.x + f - 1), floor_div(hi.y - shift.y + f - 1));
     status = FftSearch(coarse_, base_small_, base_mask_small_, templ_small_, templ_mask_small_,
-                       std::max(1.0, templ_valid_small), lo_small, hi_small, &peak, &error);
+                       std::max(1.0, templ_valid_px / (f * f)), lo_small, hi_small, &peak, &error);
+    peak.offset = peak.offset * f + shift;
+    peak.subpixel *= f;
   }
   if (status != Status::kOk) return fail(status, error);
   const double ratio = peak.ratio;
   if (f > 1) {
-    const Eigen::Vector2d coarse =
-        f * (Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel);
+    const Eigen::Vector2d coarse = Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel;
     const cv::Point start(std::clamp(static_cast<int>(std::lround(coarse.x())), lo.x, hi.x),
                           std::clamp(static_cast<int>(std::lround(coarse.y())), lo.y, hi.y));
     status = Refine(base, base_mask, templ, templ_mask, start, lo, hi, std::min(f + 1, 9), &peak,
