@@ -391,10 +391,12 @@ int main(int argc, char** argv) {
                       {"match_template_ccoeff_normed",
                        {{"success_rate", tm.Rate()},
                         {"ms_per_pair", tm.Ms()},
+                        {"cpu_ms_per_pair", tm.CpuMs()},
                         {"rmse_px_of_successes", tm.Rmse()}}},
                       {"phase_correlate",
                        {{"success_rate", pc.Rate()},
                         {"ms_per_pair", pc.Ms()},
+                        {"cpu_ms_per_pair", pc.CpuMs()},
                         {"rmse_px_of_successes", pc.Rmse()}}}});
     }
   }

@@ -325,6 +325,8 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
 }
 
 void ScdMatcher::ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum) {
+  // Plans depend on the geometry of the pair; bound the cache for long runs.
+  if (dft_plans_.size() > 64) dft_plans_.clear();
   auto& plan = dft_plans_[{src.cols, src.rows, 0, nonzero_rows}];
   if (!plan) plan = cv::hal::DFT2D::create(src.cols, src.rows, CV_32F, 1, 1, 0, nonzero_rows);
   spectrum->create(src.size(), CV_32F);

@@ -52,8 +52,8 @@ struct ScdOptions {
   // 1.5 x the fraction pure noise reaches (Rayleigh: exp(-k^2/2), k = noise_floor_sigmas; the
   // measured fraction is a little higher, see docs/matching.md) -> kFlat.
   double min_oriented_fraction = 0.01;
-  // Peak over the best local maximum farther than peak_exclusion_px from it, both measured by
-  // peak_criterion; below -> kAmbiguous.
+  // Peak over the best local maximum farther than peak_exclusion_px (pixels of the searched,
+  // possibly reduced, images) from it, both measured by peak_criterion; below -> kAmbiguous.
   double min_peak_ratio = 1.05;
   double peak_exclusion_px = 4.0;
   ScdSubpixel subpixel = ScdSubpixel::kParabola;
@@ -89,9 +89,9 @@ struct ScdResult {
 // Printable name of a status ("ok", "too little overlap", ...).
 IRMOSAIC_EXPORT const char* ToString(ScdResult::Status status);
 
-// Reusable matcher: FFT plans/buffers and filter kernels kept between calls (no allocation per
-// pair once warm for same-size inputs, apart from OpenCV's internal filter scratch). Not
-// thread-safe; one per thread.
+// Reusable matcher: FFT plans/buffers and filter kernels kept between calls. Buffers are sized by
+// the pair's reachable overlap, so they are reused (no allocation) when a pair repeats a
+// geometry, and OpenCV's filters keep their own row scratch. Not thread-safe; one per thread.
 class IRMOSAIC_EXPORT ScdMatcher {
  public:
   // Options are checked on each Match (invalid -> kBadInput with the reason).
@@ -100,9 +100,10 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // base/templ: CV_8U, CV_16U or CV_32F single channel; masks CV_8U (nonzero = valid) or empty
   // (= all valid), same size as their image; non-finite float pixels count as invalid. Searches
   // integer offsets within search_radius_px (Chebyshev: a square window) of predicted_offset,
-  // then refines the peak to sub-pixel. Valid pixels are those of the mask eroded by the
-  // pre-blur support (about 3 sigma), so that mask edges create no gradients; the search's
-  // overlap test counts these, the reported overlap_px counts the masks as given.
+  // then refines the peak to sub-pixel. Valid pixels are those of the mask eroded by
+  // ceil(2 sigma) + 1 px, the image border counting as a mask edge, so that edges create no
+  // gradients; the search's overlap test counts these, the reported overlap_px counts the masks
+  // as given. peak_ratio comes from the coarse (reduced) search.
   ScdResult Match(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
                   const cv::Mat& templ_mask, const Eigen::Vector2d& predicted_offset,
                   double search_radius_px);
