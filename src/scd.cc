@@ -5,6 +5,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 #include <vector>
@@ -307,7 +308,27 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
     float* s = out->sin_w.ptr<float>(y);
     float* d = mask_out_flat ? out->den_w.ptr<float>(y) : nullptr;
     int row_oriented = 0;
-    for (int x = 0; x < size.width; ++x) {
+    int x = 0;
+#if CV_SIMD128
+    if (!soft && !mask_out_flat) {
+      // Same arithmetic as the scalar loop below, four pixels at a time.
+      const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+      const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
+      const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
+      cv::v_float32x4 count = zero;
+      for (; x + 4 <= size.width; x += 4) {
+        const cv::v_float32x4 vx = cv::v_load(gx + x), vy = cv::v_load(gy + x);
+        const cv::v_float32x4 m2 = vx * vx + vy * vy;
+        const cv::v_float32x4 keep = (cv::v_load(v + x) != zero) & (m2 > floor4) & (m2 > zero);
+        const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
+        cv::v_store(c + x, vx * inv);
+        cv::v_store(s + x, vy * inv);
+        count += cv::v_select(keep, one, zero);
+      }
+      row_oriented += static_cast<int>(cv::v_reduce_sum(count));
+    }
+#endif
+    for (; x < size.width; ++x) {
       const bool is_valid = v[x] != 0.0f;
       const float mag_sq = gx[x] * gx[x] + gy[x] * gy[x];
       const bool oriented = is_valid && mag_sq > floor_sq && mag_sq > 0.0f;
