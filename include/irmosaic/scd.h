@@ -41,11 +41,11 @@ enum class ScdPeakCriterion {
 };
 
 struct ScdOptions {
-  double gradient_sigma_px = 3.0;      // Gaussian pre-blur before gradients (tune by measurement)
+  double gradient_sigma_px = 3.0;      // Gaussian pre-blur before gradients (3: measured, docs)
   double min_overlap_fraction = 0.05;  // of the template's valid pixels; smaller overlaps rejected
-  // Gradient magnitudes under noise_floor_sigmas * (std of the gradient of pure noise) carry no
-  // orientation. The image noise std is estimated per image (Immerkaer), so the floor follows
-  // gain changes; 0 disables the floor.
+  // Gradient magnitudes under noise_floor_sigmas * (std of one gradient component of pure image
+  // noise) carry no orientation. The image noise std is estimated per image (Immerkaer), so the
+  // floor follows gain changes; 0 disables the floor.
   double noise_floor_sigmas = 2.0;
   ScdFlatHandling flat_handling = ScdFlatHandling::kZero;
   // Oriented pixels (template or base) fewer than this fraction of the valid pixels, on top of
@@ -54,6 +54,7 @@ struct ScdOptions {
   double min_oriented_fraction = 0.01;
   // Peak over the best local maximum farther than peak_exclusion_px (pixels of the searched,
   // possibly reduced, images) from it, both measured by peak_criterion; below -> kAmbiguous.
+  // The ratio is reported as 1000 when no other peak is positive.
   double min_peak_ratio = 1.05;
   double peak_exclusion_px = 4.0;
   ScdSubpixel subpixel = ScdSubpixel::kParabola;
