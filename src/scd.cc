@@ -133,6 +133,9 @@ bool ScdOptions::IsValid(std::string* error) const {
   if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
     return fail("coarse_gradient_sigma_px must be in [0, 20]");
   }
+  if (!(magnitude_weight_cap >= 0.0 && magnitude_weight_cap <= 100.0)) {
+    return fail("magnitude_weight_cap must be in [0, 100]");
+  }
   if (!(max_search_radius_px > 0.0 && max_search_radius_px <= 1e5)) {
     return fail("max_search_radius_px must be in (0, 1e5]");
   }
@@ -212,7 +215,7 @@ ScdMatcher::ScdMatcher(ScdOptions options) : options_(options) {
 
 void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
                               const cv::Rect& roi, Scratch* scratch, Field* out,
-                              double* noise_std_io) {
+                              double* noise_std_io, Field* unit) {
   cv::Mat& work_f32 = scratch->work_f32;
   cv::Mat& work_mask = scratch->work_mask;
   cv::Mat& blurred = scratch->blurred;
@@ -285,12 +288,43 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
     valid_px += row_valid;
   }
   out->valid_px = valid_px;
-  Normalise(gx_all, gy_all, out);
+  Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
+  if (unit) {
+    unit->region = roi;
+    unit->floor_sq = out->floor_sq;
+    unit->valid = out->valid;  // Shared: Normalise does not write it.
+    unit->valid_px = valid_px;
+    Normalise(gx_all, gy_all, 0.0, unit);
+  }
 }
 
-void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* out) const {
+void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double weight_cap,
+                           Field* out) {
   const cv::Size size = out->region.size();
   const float floor_sq = out->floor_sq;
+  // Weighting w = min(cap, m / median) enters as inv = w / m = min(cap / m, 1 / median).
+  const bool weighted = weight_cap > 0.0;
+  float cap = 1.0f, inv_median = std::numeric_limits<float>::infinity();  // w = 1
+  if (weighted) {
+    // Median magnitude of the valid pixels, sampled on every other row and column.
+    magnitudes_.clear();
+    for (int y = 0; y < size.height; y += 2) {
+      const float* gx = gx_all.ptr<float>(y);
+      const float* gy = gy_all.ptr<float>(y);
+      const float* v = out->valid.ptr<float>(y);
+      for (int x = 0; x < size.width; x += 2) {
+        if (v[x] != 0.0f) magnitudes_.push_back(gx[x] * gx[x] + gy[x] * gy[x]);
+      }
+    }
+    if (!magnitudes_.empty()) {
+      auto mid = magnitudes_.begin() + static_cast<std::ptrdiff_t>(magnitudes_.size() / 2);
+      std::nth_element(magnitudes_.begin(), mid, magnitudes_.end());
+      if (*mid > 0.0f) {
+        cap = static_cast<float>(weight_cap);
+        inv_median = 1.0f / std::sqrt(*mid);
+      }
+    }
+  }
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
   out->cos_w.create(size, CV_32F);
@@ -315,12 +349,14 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
       const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
       const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
       const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
+      const cv::v_float32x4 cap4 = cv::v_setall_f32(cap), inv_med4 = cv::v_setall_f32(inv_median);
       cv::v_float32x4 count = zero;
       for (; x + 4 <= size.width; x += 4) {
         const cv::v_float32x4 vx = cv::v_load(gx + x), vy = cv::v_load(gy + x);
         const cv::v_float32x4 m2 = vx * vx + vy * vy;
         const cv::v_float32x4 keep = (cv::v_load(v + x) != zero) & (m2 > floor4) & (m2 > zero);
-        const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
+        const cv::v_float32x4 inv_m = one / cv::v_sqrt(cv::v_max(m2, tiny));
+        const cv::v_float32x4 inv = cv::v_select(keep, cv::v_min(cap4 * inv_m, inv_med4), zero);
         cv::v_store(c + x, vx * inv);
         cv::v_store(s + x, vy * inv);
         count += cv::v_select(keep, one, zero);
@@ -332,8 +368,11 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
       const bool is_valid = v[x] != 0.0f;
       const float mag_sq = gx[x] * gx[x] + gy[x] * gy[x];
       const bool oriented = is_valid && mag_sq > floor_sq && mag_sq > 0.0f;
-      float inv = oriented ? 1.0f / std::sqrt(mag_sq) : 0.0f;
-      if (soft && is_valid) inv = std::sqrt(mag_sq) / (mag_sq + floor_sq + 1e-30f);
+      float inv = oriented ? std::min(cap / std::sqrt(mag_sq), inv_median) : 0.0f;
+      if (soft && is_valid) {
+        inv = std::sqrt(mag_sq) / (mag_sq + floor_sq + 1e-30f);
+        if (weighted) inv *= std::min(cap, std::sqrt(mag_sq) * inv_median);
+      }
       c[x] = gx[x] * inv;
       s[x] = gy[x] * inv;
       if (d) d[x] = oriented ? 1.0f : 0.0f;
@@ -550,9 +589,11 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
   field.region = source.region;
   field.floor_sq = source.floor_sq;
   field.valid = source.valid;  // Shared: Normalise does not write it.
-  Normalise(shifted_gx_, shifted_gy_, &field);
+  Normalise(shifted_gx_, shifted_gy_, 0.0, &field);
+  const Field& templ_unit =
+      options_.magnitude_weight_cap > 0.0 ? fine_scratch_.templ_unit : fine_scratch_.templ_field;
   double criterion = 0.0, scd = 0.0;
-  if (!Evaluate(fine_scratch_.templ_field, field, offset, &criterion, &scd)) {
+  if (!Evaluate(templ_unit, field, offset, &criterion, &scd)) {
     return -std::numeric_limits<double>::infinity();
   }
   return criterion;
@@ -589,10 +630,11 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
     return Status::kTooLittleOverlap;
   }
   double templ_noise = -1.0, base_noise = -1.0;
+  const bool weighted = options_.magnitude_weight_cap > 0.0;
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
-               &templ_noise);
+               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
-               &base_noise);
+               &base_noise, weighted ? &fine_scratch_.base_unit : nullptr);
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;
@@ -645,6 +687,13 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   if (l > kNone && r > kNone) peak->subpixel.x() = RefineAxis(options_.subpixel, l, c, r);
   if (u > kNone && d > kNone) peak->subpixel.y() = RefineAxis(options_.subpixel, u, c, d);
   peak->ratio = scd_grid[(at.y - start.y + half) * side + (at.x - start.x + half)];  // SCD
+  if (weighted) {
+    // The reported score is the paper's (unweighted) SCD.
+    double unused = 0.0, scd = 0.0;
+    if (Evaluate(fine_scratch_.templ_unit, fine_scratch_.base_unit, at, &unused, &scd)) {
+      peak->ratio = scd;
+    }
+  }
   const double h = options_.subpixel_step_px;
   if (h > 0.0) {
     // Second fit at +-h around the first estimate, all on resampled gradients (same smoothing).

@@ -6,6 +6,7 @@
 #include <opencv2/core/hal/hal.hpp>
 #include <string>
 #include <tuple>
+#include <vector>
 
 #include "irmosaic/export.h"
 
@@ -63,6 +64,13 @@ struct ScdOptions {
   // most of the fit's bias on a peak that is not a parabola. 0 disables (5 evaluations fewer).
   double subpixel_step_px = 0.4;
   ScdPeakCriterion peak_criterion = ScdPeakCriterion::kScd;
+  // Confidence weighting of the search: each oriented pixel's unit vector is weighted by
+  // min(cap, m / median m), m its gradient magnitude and the median taken over the image's valid
+  // pixels (so gain cancels). Under noise, weak gradients have random orientation; weighting
+  // them less moves the SCD maximum much less (docs/matching.md). Used for the coarse FFT search
+  // and the integer climb; the sub-pixel refit and the reported score use unit vectors (paper's
+  // SCD). 0 = unit vectors throughout.
+  double magnitude_weight_cap = 2.0;
   // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
   // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
   // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
@@ -136,10 +144,13 @@ class IRMOSAIC_EXPORT ScdMatcher {
   struct Scratch {
     cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, finite;
     Field templ_field, base_field;
+    Field templ_unit, base_unit;  // unit-vector fields (fine level, weighting on)
   };
   // *noise_std: the image noise std to use, or negative to estimate it (then written back).
+  // unit (optional): also the unit-vector field of the same gradients.
   void ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
-                    const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std);
+                    const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std,
+                    Field* unit = nullptr);
   // Masked SCD over the integer window [lo, hi] (inclusive) by FFT; kOk or a failure in result.
   Status FftSearch(const Filter& filter, const cv::Mat& base, const cv::Mat& base_mask,
                    const cv::Mat& templ, const cv::Mat& templ_mask, double templ_valid_px,
@@ -155,7 +166,8 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // shift: they are band-limited by the pre-blur, and blur and Sobel commute with the shift.
   double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift);
   // Fills a field's vectors and weights from gradients; validity already in out->valid.
-  void Normalise(const cv::Mat& gx, const cv::Mat& gy, Field* out) const;
+  // weight_cap > 0: vectors weighted by min(weight_cap, m / median m) (magnitude_weight_cap).
+  void Normalise(const cv::Mat& gx, const cv::Mat& gy, double weight_cap, Field* out);
   Status CheckFlat(const Field& f, const char* which, std::string* reason) const;
   void ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum);
   void InverseDft(const cv::Mat& spectrum, int output_rows, cv::Mat* out);
@@ -165,6 +177,7 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // Scratch, reused between calls.
   Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
   cv::Mat shifted_gx_, shifted_gy_;
+  std::vector<float> magnitudes_;  // sample for the median gradient magnitude
   cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
