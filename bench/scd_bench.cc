@@ -6,6 +6,7 @@
 //             SCD options (library defaults when absent): [--sigma S] [--floor K]
 //             [--flat zero|mask|soft] [--criterion sig|scd] [--subpixel parabola|gauss]
 //             [--subpixel_step H] [--min_ratio R] [--pyramid F] [--coarse_sigma S]
+//             [--weight_cap C]
 //
 // Pairs: real thermal frames (shared/data/thermal) warped by an oblique homography onto a
 // 1150x760 "ortho" canvas (irregular valid area), two 640x512 crops with 15-25 % valid overlap
@@ -287,7 +288,8 @@ int main(int argc, char** argv) {
                                              {"--pyramid", ""},
                                              {"--coarse_sigma", ""},
                                              {"--subpixel_step", ""},
-                                             {"--min_ratio", ""}};
+                                             {"--min_ratio", ""},
+                                             {"--weight_cap", ""}};
   for (int i = 1; i + 1 < argc; i += 2) {
     if (!args.count(argv[i])) {
       std::fprintf(stderr, "unknown option %s\n", argv[i]);
@@ -308,6 +310,7 @@ int main(int argc, char** argv) {
   set("--coarse_sigma", &options.coarse_gradient_sigma_px);
   set("--subpixel_step", &options.subpixel_step_px);
   set("--min_ratio", &options.min_peak_ratio);
+  set("--weight_cap", &options.magnitude_weight_cap);
   if (args["--flat"] == "mask") options.flat_handling = irmosaic::ScdFlatHandling::kMaskOut;
   if (args["--flat"] == "zero") options.flat_handling = irmosaic::ScdFlatHandling::kZero;
   if (args["--flat"] == "soft") options.flat_handling = irmosaic::ScdFlatHandling::kSoft;

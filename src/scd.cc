@@ -133,6 +133,9 @@ bool ScdOptions::IsValid(std::string* error) const {
   if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
     return fail("coarse_gradient_sigma_px must be in [0, 20]");
   }
+  if (!(subpixel_refit_max_px >= 0.0 && subpixel_refit_max_px <= 2.0)) {
+    return fail("subpixel_refit_max_px must be in [0, 2]");
+  }
   if (!(magnitude_weight_cap >= 0.0 && magnitude_weight_cap <= 100.0)) {
     return fail("magnitude_weight_cap must be in [0, 100]");
   }
@@ -703,11 +706,13 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
     const double xr = EvaluateShifted(at, s0 + Eigen::Vector2d(h, 0));
     const double yl = EvaluateShifted(at, s0 - Eigen::Vector2d(0, h));
     const double yr = EvaluateShifted(at, s0 + Eigen::Vector2d(0, h));
-    // Vertex within +-2h of the first estimate (the parabola through 3 points can overshoot).
-    auto vertex = [h](double lower, double mid, double upper) {
+    // Vertex within +-subpixel_refit_max_px of the first estimate (see ScdOptions).
+    const double max_move = options_.subpixel_refit_max_px;
+    auto vertex = [h, max_move](double lower, double mid, double upper) {
       const double curvature = lower - 2.0 * mid + upper;
-      return curvature < 0.0 ? std::clamp(0.5 * h * (lower - upper) / curvature, -2.0 * h, 2.0 * h)
-                             : 0.0;
+      return curvature < 0.0
+                 ? std::clamp(0.5 * h * (lower - upper) / curvature, -max_move, max_move)
+                 : 0.0;
     };
     if (c0 > kNone && xl > kNone && xr > kNone) peak->subpixel.x() = s0.x() + vertex(xl, c0, xr);
     if (c0 > kNone && yl > kNone && yr > kNone) peak->subpixel.y() = s0.y() + vertex(yl, c0, yr);

@@ -63,6 +63,10 @@ struct ScdOptions {
   // it, evaluated on the base gradients resampled (cubic) at those sub-pixel shifts: removes
   // most of the fit's bias on a peak that is not a parabola. 0 disables (5 evaluations fewer).
   double subpixel_step_px = 0.4;
+  // The refit moves the first estimate by at most this much: on clean pairs it corrects the
+  // 3-point fit's shape bias (under 0.2 px measured); a larger move under noise follows the
+  // unweighted SCD's own, noisier peak (see magnitude_weight_cap; docs/matching.md).
+  double subpixel_refit_max_px = 0.2;
   ScdPeakCriterion peak_criterion = ScdPeakCriterion::kScd;
   // Confidence weighting of the search: each oriented pixel's unit vector is weighted by
   // min(cap, m / median m), m its gradient magnitude and the median taken over the image's valid
@@ -70,7 +74,7 @@ struct ScdOptions {
   // them less moves the SCD maximum much less (docs/matching.md). Used for the coarse FFT search
   // and the integer climb; the sub-pixel refit and the reported score use unit vectors (paper's
   // SCD). 0 = unit vectors throughout.
-  double magnitude_weight_cap = 2.0;
+  double magnitude_weight_cap = 4.0;
   // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
   // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
   // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
