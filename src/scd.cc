@@ -309,13 +309,13 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double 
   const bool weighted = weight_cap > 0.0;
   float cap = 1.0f, inv_median = std::numeric_limits<float>::infinity();  // w = 1
   if (weighted) {
-    // Median magnitude of the valid pixels, sampled on every other row and column.
+    // Median magnitude of the valid pixels, sampled on every fourth row and column.
     magnitudes_.clear();
-    for (int y = 0; y < size.height; y += 2) {
+    for (int y = 0; y < size.height; y += 4) {
       const float* gx = gx_all.ptr<float>(y);
       const float* gy = gy_all.ptr<float>(y);
       const float* v = out->valid.ptr<float>(y);
-      for (int x = 0; x < size.width; x += 2) {
+      for (int x = 0; x < size.width; x += 4) {
         if (v[x] != 0.0f) magnitudes_.push_back(gx[x] * gx[x] + gy[x] * gy[x]);
       }
     }
