@@ -73,7 +73,7 @@ struct ScdOptions {
   // pixels (so gain cancels). Under noise, weak gradients have random orientation; weighting
   // them less moves the SCD maximum much less (docs/matching.md). Used for the coarse FFT search
   // and the integer climb; the sub-pixel refit and the reported score use unit vectors (paper's
-  // SCD). 0 = unit vectors throughout.
+  // SCD; with pyramid_factor 1 the score is the weighted one). 0 = unit vectors throughout.
   double magnitude_weight_cap = 4.0;
   // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
   // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
