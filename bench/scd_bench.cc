@@ -2,8 +2,11 @@
 // success rate (error < 1 px) and ms per 640x512 pair over noise and blur, one core.
 //
 //   scd_bench [--json FILE] [--pairs N] [--psnr 35,30,25,20] [--blur 1,2,3,4] [--radius 64]
-//             [--sigma 2] [--floor 2] [--flat zero|mask] [--criterion sig|scd]
-//             [--subpixel parabola|gauss] [--methods scd,tm,pc] [--seed 1]
+//             [--methods scd,tm,pc] [--seed 1]
+//             SCD options (library defaults when absent): [--sigma S] [--floor K]
+//             [--flat zero|mask|soft] [--criterion sig|scd] [--subpixel parabola|gauss]
+//             [--subpixel_step H] [--min_ratio R] [--pyramid F] [--coarse_sigma S]
+//             [--weight_cap C]
 //
 // Pairs: real thermal frames (shared/data/thermal) warped by an oblique homography onto a
 // 1150x760 "ortho" canvas (irregular valid area), two 640x512 crops with 15-25 % valid overlap
@@ -275,15 +278,18 @@ int main(int argc, char** argv) {
                                              {"--psnr", "35,30,25,20"},
                                              {"--blur", "1,2,3,4"},
                                              {"--radius", "64"},
-                                             {"--sigma", "2"},
-                                             {"--floor", "2"},
-                                             {"--flat", "zero"},
-                                             {"--criterion", "sig"},
-                                             {"--subpixel", "parabola"},
+                                             {"--sigma", ""},
+                                             {"--floor", ""},
+                                             {"--flat", ""},
+                                             {"--criterion", ""},
+                                             {"--subpixel", ""},
                                              {"--methods", "scd,tm,pc"},
                                              {"--seed", "1"},
-                                             {"--pyramid", "4"},
-                                             {"--coarse_sigma", "1"}};
+                                             {"--pyramid", ""},
+                                             {"--coarse_sigma", ""},
+                                             {"--subpixel_step", ""},
+                                             {"--min_ratio", ""},
+                                             {"--weight_cap", ""}};
   for (int i = 1; i + 1 < argc; i += 2) {
     if (!args.count(argv[i])) {
       std::fprintf(stderr, "unknown option %s\n", argv[i]);
@@ -292,17 +298,27 @@ int main(int argc, char** argv) {
     args[argv[i]] = argv[i + 1];
   }
   cv::setNumThreads(1);
+  // Options not given keep the library's defaults.
   ScdOptions options;
-  options.gradient_sigma_px = std::stod(args["--sigma"]);
-  options.noise_floor_sigmas = std::stod(args["--floor"]);
-  options.flat_handling = args["--flat"] == "mask" ? irmosaic::ScdFlatHandling::kMaskOut
-                                                   : irmosaic::ScdFlatHandling::kZero;
-  options.peak_criterion = args["--criterion"] == "scd" ? irmosaic::ScdPeakCriterion::kScd
-                                                        : irmosaic::ScdPeakCriterion::kSignificance;
-  options.subpixel = args["--subpixel"] == "gauss" ? irmosaic::ScdSubpixel::kGaussian
-                                                   : irmosaic::ScdSubpixel::kParabola;
-  options.pyramid_factor = std::stoi(args["--pyramid"]);
-  options.coarse_gradient_sigma_px = std::stod(args["--coarse_sigma"]);
+  auto set = [&args](const char* name, auto* field) {
+    using Field = std::decay_t<decltype(*field)>;
+    if (!args[name].empty()) *field = static_cast<Field>(std::stod(args[name]));
+  };
+  set("--sigma", &options.gradient_sigma_px);
+  set("--floor", &options.noise_floor_sigmas);
+  set("--pyramid", &options.pyramid_factor);
+  set("--coarse_sigma", &options.coarse_gradient_sigma_px);
+  set("--subpixel_step", &options.subpixel_step_px);
+  set("--min_ratio", &options.min_peak_ratio);
+  set("--weight_cap", &options.magnitude_weight_cap);
+  if (args["--flat"] == "mask") options.flat_handling = irmosaic::ScdFlatHandling::kMaskOut;
+  if (args["--flat"] == "zero") options.flat_handling = irmosaic::ScdFlatHandling::kZero;
+  if (args["--flat"] == "soft") options.flat_handling = irmosaic::ScdFlatHandling::kSoft;
+  if (args["--criterion"] == "scd") options.peak_criterion = irmosaic::ScdPeakCriterion::kScd;
+  if (args["--criterion"] == "sig") {
+    options.peak_criterion = irmosaic::ScdPeakCriterion::kSignificance;
+  }
+  if (args["--subpixel"] == "gauss") options.subpixel = irmosaic::ScdSubpixel::kGaussian;
   const double radius = std::stod(args["--radius"]);
   const std::string methods = args["--methods"];
   const bool run_tm = methods.find("tm") != std::string::npos;
@@ -378,10 +394,12 @@ int main(int argc, char** argv) {
                       {"match_template_ccoeff_normed",
                        {{"success_rate", tm.Rate()},
                         {"ms_per_pair", tm.Ms()},
+                        {"cpu_ms_per_pair", tm.CpuMs()},
                         {"rmse_px_of_successes", tm.Rmse()}}},
                       {"phase_correlate",
                        {{"success_rate", pc.Rate()},
                         {"ms_per_pair", pc.Ms()},
+                        {"cpu_ms_per_pair", pc.CpuMs()},
                         {"rmse_px_of_successes", pc.Rmse()}}}});
     }
   }
@@ -395,9 +413,11 @@ int main(int argc, char** argv) {
                           {"options",
                            {{"gradient_sigma_px", options.gradient_sigma_px},
                             {"noise_floor_sigmas", options.noise_floor_sigmas},
-                            {"flat", args["--flat"]},
-                            {"criterion", args["--criterion"]},
-                            {"subpixel", args["--subpixel"]},
+                            {"flat_handling", int(options.flat_handling)},
+                            {"peak_criterion", int(options.peak_criterion)},
+                            {"subpixel", int(options.subpixel)},
+                            {"subpixel_step_px", options.subpixel_step_px},
+                            {"min_peak_ratio", options.min_peak_ratio},
                             {"pyramid_factor", options.pyramid_factor},
                             {"coarse_gradient_sigma_px", options.coarse_gradient_sigma_px},
                             {"radius_px", radius}}},

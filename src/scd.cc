@@ -5,6 +5,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 #include <vector>
@@ -132,6 +133,12 @@ bool ScdOptions::IsValid(std::string* error) const {
   if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
     return fail("coarse_gradient_sigma_px must be in [0, 20]");
   }
+  if (!(subpixel_refit_max_px >= 0.0 && subpixel_refit_max_px <= 2.0)) {
+    return fail("subpixel_refit_max_px must be in [0, 2]");
+  }
+  if (!(magnitude_weight_cap >= 0.0 && magnitude_weight_cap <= 100.0)) {
+    return fail("magnitude_weight_cap must be in [0, 100]");
+  }
   if (!(max_search_radius_px > 0.0 && max_search_radius_px <= 1e5)) {
     return fail("max_search_radius_px must be in (0, 1e5]");
   }
@@ -211,7 +218,7 @@ ScdMatcher::ScdMatcher(ScdOptions options) : options_(options) {
 
 void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
                               const cv::Rect& roi, Scratch* scratch, Field* out,
-                              double* noise_std_io) {
+                              double* noise_std_io, Field* unit) {
   cv::Mat& work_f32 = scratch->work_f32;
   cv::Mat& work_mask = scratch->work_mask;
   cv::Mat& blurred = scratch->blurred;
@@ -284,12 +291,43 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
     valid_px += row_valid;
   }
   out->valid_px = valid_px;
-  Normalise(gx_all, gy_all, out);
+  Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
+  if (unit) {
+    unit->region = roi;
+    unit->floor_sq = out->floor_sq;
+    unit->valid = out->valid;  // Shared: Normalise does not write it.
+    unit->valid_px = valid_px;
+    Normalise(gx_all, gy_all, 0.0, unit);
+  }
 }
 
-void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* out) const {
+void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double weight_cap,
+                           Field* out) {
   const cv::Size size = out->region.size();
   const float floor_sq = out->floor_sq;
+  // Weighting w = min(cap, m / median) enters as inv = w / m = min(cap / m, 1 / median).
+  const bool weighted = weight_cap > 0.0;
+  float cap = 1.0f, inv_median = std::numeric_limits<float>::infinity();  // w = 1
+  if (weighted) {
+    // Median magnitude of the valid pixels, sampled on every fourth row and column.
+    magnitudes_.clear();
+    for (int y = 0; y < size.height; y += 4) {
+      const float* gx = gx_all.ptr<float>(y);
+      const float* gy = gy_all.ptr<float>(y);
+      const float* v = out->valid.ptr<float>(y);
+      for (int x = 0; x < size.width; x += 4) {
+        if (v[x] != 0.0f) magnitudes_.push_back(gx[x] * gx[x] + gy[x] * gy[x]);
+      }
+    }
+    if (!magnitudes_.empty()) {
+      auto mid = magnitudes_.begin() + static_cast<std::ptrdiff_t>(magnitudes_.size() / 2);
+      std::nth_element(magnitudes_.begin(), mid, magnitudes_.end());
+      if (*mid > 0.0f) {
+        cap = static_cast<float>(weight_cap);
+        inv_median = 1.0f / std::sqrt(*mid);
+      }
+    }
+  }
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
   out->cos_w.create(size, CV_32F);
@@ -307,12 +345,37 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
     float* s = out->sin_w.ptr<float>(y);
     float* d = mask_out_flat ? out->den_w.ptr<float>(y) : nullptr;
     int row_oriented = 0;
-    for (int x = 0; x < size.width; ++x) {
+    int x = 0;
+#if CV_SIMD128
+    if (!soft && !mask_out_flat) {
+      // Same arithmetic as the scalar loop below, four pixels at a time.
+      const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+      const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
+      const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
+      const cv::v_float32x4 cap4 = cv::v_setall_f32(cap), inv_med4 = cv::v_setall_f32(inv_median);
+      cv::v_float32x4 count = zero;
+      for (; x + 4 <= size.width; x += 4) {
+        const cv::v_float32x4 vx = cv::v_load(gx + x), vy = cv::v_load(gy + x);
+        const cv::v_float32x4 m2 = vx * vx + vy * vy;
+        const cv::v_float32x4 keep = (cv::v_load(v + x) != zero) & (m2 > floor4) & (m2 > zero);
+        const cv::v_float32x4 inv_m = one / cv::v_sqrt(cv::v_max(m2, tiny));
+        const cv::v_float32x4 inv = cv::v_select(keep, cv::v_min(cap4 * inv_m, inv_med4), zero);
+        cv::v_store(c + x, vx * inv);
+        cv::v_store(s + x, vy * inv);
+        count += cv::v_select(keep, one, zero);
+      }
+      row_oriented += static_cast<int>(cv::v_reduce_sum(count));
+    }
+#endif
+    for (; x < size.width; ++x) {
       const bool is_valid = v[x] != 0.0f;
       const float mag_sq = gx[x] * gx[x] + gy[x] * gy[x];
       const bool oriented = is_valid && mag_sq > floor_sq && mag_sq > 0.0f;
-      float inv = oriented ? 1.0f / std::sqrt(mag_sq) : 0.0f;
-      if (soft && is_valid) inv = std::sqrt(mag_sq) / (mag_sq + floor_sq + 1e-30f);
+      float inv = oriented ? std::min(cap / std::sqrt(mag_sq), inv_median) : 0.0f;
+      if (soft && is_valid) {
+        inv = std::sqrt(mag_sq) / (mag_sq + floor_sq + 1e-30f);
+        if (weighted) inv *= std::min(cap, std::sqrt(mag_sq) * inv_median);
+      }
       c[x] = gx[x] * inv;
       s[x] = gy[x] * inv;
       if (d) d[x] = oriented ? 1.0f : 0.0f;
@@ -325,6 +388,8 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, Field* 
 }
 
 void ScdMatcher::ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum) {
+  // Plans depend on the geometry of the pair; bound the cache for long runs.
+  if (dft_plans_.size() > 64) dft_plans_.clear();
   auto& plan = dft_plans_[{src.cols, src.rows, 0, nonzero_rows}];
   if (!plan) plan = cv::hal::DFT2D::create(src.cols, src.rows, CV_32F, 1, 1, 0, nonzero_rows);
   spectrum->create(src.size(), CV_32F);
@@ -527,9 +592,11 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
   field.region = source.region;
   field.floor_sq = source.floor_sq;
   field.valid = source.valid;  // Shared: Normalise does not write it.
-  Normalise(shifted_gx_, shifted_gy_, &field);
+  Normalise(shifted_gx_, shifted_gy_, 0.0, &field);
+  const Field& templ_unit =
+      options_.magnitude_weight_cap > 0.0 ? fine_scratch_.templ_unit : fine_scratch_.templ_field;
   double criterion = 0.0, scd = 0.0;
-  if (!Evaluate(fine_scratch_.templ_field, field, offset, &criterion, &scd)) {
+  if (!Evaluate(templ_unit, field, offset, &criterion, &scd)) {
     return -std::numeric_limits<double>::infinity();
   }
   return criterion;
@@ -543,6 +610,17 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   const int grow = max_steps + 1;
   const cv::Rect templ_rect(0, 0, templ.cols, templ.rows), base_rect(0, 0, base.cols, base.rows);
   cv::Rect t_roi = templ_rect & (base_rect - start);
+  if (!t_roi.empty() && (!templ_mask.empty() || !base_mask.empty())) {
+    // Only the bounding box of the valid overlap: with irregular masks it is much smaller.
+    if (templ_mask.empty()) {
+      cv::compare(base_mask(t_roi + start), 0, tmp_, cv::CMP_NE);
+    } else if (base_mask.empty()) {
+      cv::compare(templ_mask(t_roi), 0, tmp_, cv::CMP_NE);
+    } else {
+      cv::bitwise_and(templ_mask(t_roi), base_mask(t_roi + start), tmp_);
+    }
+    t_roi = cv::boundingRect(tmp_) + t_roi.tl();
+  }
   t_roi =
       cv::Rect(t_roi.x - grow, t_roi.y - grow, t_roi.width + 2 * grow, t_roi.height + 2 * grow) &
       templ_rect;
@@ -555,10 +633,11 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
     return Status::kTooLittleOverlap;
   }
   double templ_noise = -1.0, base_noise = -1.0;
+  const bool weighted = options_.magnitude_weight_cap > 0.0;
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
-               &templ_noise);
+               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
-               &base_noise);
+               &base_noise, weighted ? &fine_scratch_.base_unit : nullptr);
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;
@@ -611,6 +690,13 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   if (l > kNone && r > kNone) peak->subpixel.x() = RefineAxis(options_.subpixel, l, c, r);
   if (u > kNone && d > kNone) peak->subpixel.y() = RefineAxis(options_.subpixel, u, c, d);
   peak->ratio = scd_grid[(at.y - start.y + half) * side + (at.x - start.x + half)];  // SCD
+  if (weighted) {
+    // The reported score is the paper's (unweighted) SCD.
+    double unused = 0.0, scd = 0.0;
+    if (Evaluate(fine_scratch_.templ_unit, fine_scratch_.base_unit, at, &unused, &scd)) {
+      peak->ratio = scd;
+    }
+  }
   const double h = options_.subpixel_step_px;
   if (h > 0.0) {
     // Second fit at +-h around the first estimate, all on resampled gradients (same smoothing).
@@ -620,11 +706,13 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
     const double xr = EvaluateShifted(at, s0 + Eigen::Vector2d(h, 0));
     const double yl = EvaluateShifted(at, s0 - Eigen::Vector2d(0, h));
     const double yr = EvaluateShifted(at, s0 + Eigen::Vector2d(0, h));
-    // Vertex within +-2h of the first estimate (the parabola through 3 points can overshoot).
-    auto vertex = [h](double lower, double mid, double upper) {
+    // Vertex within +-subpixel_refit_max_px of the first estimate (see ScdOptions).
+    const double max_move = options_.subpixel_refit_max_px;
+    auto vertex = [h, max_move](double lower, double mid, double upper) {
       const double curvature = lower - 2.0 * mid + upper;
-      return curvature < 0.0 ? std::clamp(0.5 * h * (lower - upper) / curvature, -2.0 * h, 2.0 * h)
-                             : 0.0;
+      return curvature < 0.0
+                 ? std::clamp(0.5 * h * (lower - upper) / curvature, -max_move, max_move)
+                 : 0.0;
     };
     if (c0 > kNone && xl > kNone && xr > kNone) peak->subpixel.x() = s0.x() + vertex(xl, c0, xr);
     if (c0 > kNone && yl > kNone && yr > kNone) peak->subpixel.y() = s0.y() + vertex(yl, c0, yr);
@@ -697,23 +785,44 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
     status =
         FftSearch(fine_, base, base_mask, templ, templ_mask, templ_valid_px, lo, hi, &peak, &error);
   } else {
-    Reduce(base, base_mask, f, &base_small_, &base_mask_small_, &reduce_tmp_);
-    Reduce(templ, templ_mask, f, &templ_small_, &templ_mask_small_, &reduce_tmp_);
-    const double templ_valid_small = templ_mask_small_.empty()
-                                         ? static_cast<double>(templ_small_.total())
-                                         : cv::countNonZero(templ_mask_small_);
-    // Full offset u = f * coarse offset U; the coarse window covers the fine one.
+    // Reduce only what the window can use (plus context for the coarse blur and erosion),
+    // from corners on multiples of f so that reduced pixels tile the full ones exactly.
+    const cv::Rect t_need(
+        cv::Point(std::max(0, -hi.x), std::max(0, -hi.y)),
+        cv::Point(std::min(templ.cols, base.cols - lo.x), std::min(templ.rows, base.rows - lo.y)));
+    const cv::Rect b_need(cv::Point(std::max(0, t_need.x + lo.x), std::max(0, t_need.y + lo.y)),
+                          cv::Point(std::min(base.cols, t_need.br().x + hi.x),
+                                    std::min(base.rows, t_need.br().y + hi.y)));
+    const int pad = f * (std::max(coarse_.erode_px, coarse_.gauss.rows / 2 + 2) + 2);
+    auto crop = [f, pad](const cv::Rect& need, const cv::Mat& image) {
+      const int x0 = std::max(0, need.x - pad) / f * f, y0 = std::max(0, need.y - pad) / f * f;
+      const int x1 = std::min(image.cols, need.br().x + pad);
+      const int y1 = std::min(image.rows, need.br().y + pad);
+      return cv::Rect(cv::Point(x0, y0), cv::Point(x1, y1));
+    };
+    const cv::Rect t_crop = crop(t_need, templ), b_crop = crop(b_need, base);
+    if (t_crop.width < f || t_crop.height < f || b_crop.width < f || b_crop.height < f) {
+      return fail(Status::kTooLittleOverlap, "the images overlap by less than a reduced pixel");
+    }
+    Reduce(base(b_crop), base_mask.empty() ? cv::Mat() : base_mask(b_crop), f, &base_small_,
+           &base_mask_small_, &reduce_tmp_);
+    Reduce(templ(t_crop), templ_mask.empty() ? cv::Mat() : templ_mask(t_crop), f, &templ_small_,
+           &templ_mask_small_, &reduce_tmp_);
+    // Template crop pixel i <-> template f i + T0, base crop j <-> base f j + B0, so the full
+    // offset is u = f (j - i) + (B0 - T0); the coarse window covers the fine one.
+    const cv::Point shift = b_crop.tl() - t_crop.tl();
     auto floor_div = [f](int a) { return a >= 0 ? a / f : -((-a + f - 1) / f); };
-    const cv::Point lo_small(floor_div(lo.x), floor_div(lo.y));
-    const cv::Point hi_small(floor_div(hi.x + f - 1), floor_div(hi.y + f - 1));
+    const cv::Point lo_small(floor_div(lo.x - shift.x), floor_div(lo.y - shift.y));
+    const cv::Point hi_small(floor_div(hi.x - shift.x + f - 1), floor_div(hi.y - shift.y + f - 1));
     status = FftSearch(coarse_, base_small_, base_mask_small_, templ_small_, templ_mask_small_,
-                       std::max(1.0, templ_valid_small), lo_small, hi_small, &peak, &error);
+                       std::max(1.0, templ_valid_px / (f * f)), lo_small, hi_small, &peak, &error);
+    peak.offset = peak.offset * f + shift;
+    peak.subpixel *= f;
   }
   if (status != Status::kOk) return fail(status, error);
   const double ratio = peak.ratio;
   if (f > 1) {
-    const Eigen::Vector2d coarse =
-        f * (Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel);
+    const Eigen::Vector2d coarse = Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel;
     const cv::Point start(std::clamp(static_cast<int>(std::lround(coarse.x())), lo.x, hi.x),
                           std::clamp(static_cast<int>(std::lround(coarse.y())), lo.y, hi.y));
     status = Refine(base, base_mask, templ, templ_mask, start, lo, hi, std::min(f + 1, 9), &peak,

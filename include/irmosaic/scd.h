@@ -6,6 +6,7 @@
 #include <opencv2/core/hal/hal.hpp>
 #include <string>
 #include <tuple>
+#include <vector>
 
 #include "irmosaic/export.h"
 
@@ -41,19 +42,20 @@ enum class ScdPeakCriterion {
 };
 
 struct ScdOptions {
-  double gradient_sigma_px = 3.0;      // Gaussian pre-blur before gradients (tune by measurement)
+  double gradient_sigma_px = 3.0;      // Gaussian pre-blur before gradients (3: measured, docs)
   double min_overlap_fraction = 0.05;  // of the template's valid pixels; smaller overlaps rejected
-  // Gradient magnitudes under noise_floor_sigmas * (std of the gradient of pure noise) carry no
-  // orientation. The image noise std is estimated per image (Immerkaer), so the floor follows
-  // gain changes; 0 disables the floor.
+  // Gradient magnitudes under noise_floor_sigmas * (std of one gradient component of pure image
+  // noise) carry no orientation. The image noise std is estimated per image (Immerkaer), so the
+  // floor follows gain changes; 0 disables the floor.
   double noise_floor_sigmas = 2.0;
   ScdFlatHandling flat_handling = ScdFlatHandling::kZero;
   // Oriented pixels (template or base) fewer than this fraction of the valid pixels, on top of
   // 1.5 x the fraction pure noise reaches (Rayleigh: exp(-k^2/2), k = noise_floor_sigmas; the
   // measured fraction is a little higher, see docs/matching.md) -> kFlat.
   double min_oriented_fraction = 0.01;
-  // Peak over the best local maximum farther than peak_exclusion_px from it, both measured by
-  // peak_criterion; below -> kAmbiguous.
+  // Peak over the best local maximum farther than peak_exclusion_px (pixels of the searched,
+  // possibly reduced, images) from it, both measured by peak_criterion; below -> kAmbiguous.
+  // The ratio is reported as 1000 when no other peak is positive.
   double min_peak_ratio = 1.05;
   double peak_exclusion_px = 4.0;
   ScdSubpixel subpixel = ScdSubpixel::kParabola;
@@ -61,7 +63,18 @@ struct ScdOptions {
   // it, evaluated on the base gradients resampled (cubic) at those sub-pixel shifts: removes
   // most of the fit's bias on a peak that is not a parabola. 0 disables (5 evaluations fewer).
   double subpixel_step_px = 0.4;
-  ScdPeakCriterion peak_criterion = ScdPeakCriterion::kSignificance;
+  // The refit moves the first estimate by at most this much: on clean pairs it corrects the
+  // 3-point fit's shape bias (under 0.2 px measured); a larger move under noise follows the
+  // unweighted SCD's own, noisier peak (see magnitude_weight_cap; docs/matching.md).
+  double subpixel_refit_max_px = 0.2;
+  ScdPeakCriterion peak_criterion = ScdPeakCriterion::kScd;
+  // Confidence weighting of the search: each oriented pixel's unit vector is weighted by
+  // min(cap, m / median m), m its gradient magnitude and the median taken over the image's valid
+  // pixels (so gain cancels). Under noise, weak gradients have random orientation; weighting
+  // them less moves the SCD maximum much less (docs/matching.md). Used for the coarse FFT search
+  // and the integer climb; the sub-pixel refit and the reported score use unit vectors (paper's
+  // SCD; with pyramid_factor 1 the score is the weighted one). 0 = unit vectors throughout.
+  double magnitude_weight_cap = 4.0;
   // Coarse-to-fine: the FFT search runs on images reduced by this factor (1, 2, 4 or 8; 1 = FFT
   // at full resolution), with coarse_gradient_sigma_px as pre-blur there; the peak is then
   // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
@@ -89,9 +102,9 @@ struct ScdResult {
 // Printable name of a status ("ok", "too little overlap", ...).
 IRMOSAIC_EXPORT const char* ToString(ScdResult::Status status);
 
-// Reusable matcher: FFT plans/buffers and filter kernels kept between calls (no allocation per
-// pair once warm for same-size inputs, apart from OpenCV's internal filter scratch). Not
-// thread-safe; one per thread.
+// Reusable matcher: FFT plans/buffers and filter kernels kept between calls. Buffers are sized by
+// the pair's reachable overlap, so they are reused (no allocation) when a pair repeats a
+// geometry, and OpenCV's filters keep their own row scratch. Not thread-safe; one per thread.
 class IRMOSAIC_EXPORT ScdMatcher {
  public:
   // Options are checked on each Match (invalid -> kBadInput with the reason).
@@ -100,9 +113,10 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // base/templ: CV_8U, CV_16U or CV_32F single channel; masks CV_8U (nonzero = valid) or empty
   // (= all valid), same size as their image; non-finite float pixels count as invalid. Searches
   // integer offsets within search_radius_px (Chebyshev: a square window) of predicted_offset,
-  // then refines the peak to sub-pixel. Valid pixels are those of the mask eroded by the
-  // pre-blur support (about 3 sigma), so that mask edges create no gradients; the search's
-  // overlap test counts these, the reported overlap_px counts the masks as given.
+  // then refines the peak to sub-pixel. Valid pixels are those of the mask eroded by
+  // ceil(2 sigma) + 1 px, the image border counting as a mask edge, so that edges create no
+  // gradients; the search's overlap test counts these, the reported overlap_px counts the masks
+  // as given. peak_ratio comes from the coarse (reduced) search.
   ScdResult Match(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
                   const cv::Mat& templ_mask, const Eigen::Vector2d& predicted_offset,
                   double search_radius_px);
@@ -134,10 +148,13 @@ class IRMOSAIC_EXPORT ScdMatcher {
   struct Scratch {
     cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, finite;
     Field templ_field, base_field;
+    Field templ_unit, base_unit;  // unit-vector fields (fine level, weighting on)
   };
   // *noise_std: the image noise std to use, or negative to estimate it (then written back).
+  // unit (optional): also the unit-vector field of the same gradients.
   void ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
-                    const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std);
+                    const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std,
+                    Field* unit = nullptr);
   // Masked SCD over the integer window [lo, hi] (inclusive) by FFT; kOk or a failure in result.
   Status FftSearch(const Filter& filter, const cv::Mat& base, const cv::Mat& base_mask,
                    const cv::Mat& templ, const cv::Mat& templ_mask, double templ_valid_px,
@@ -153,7 +170,8 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // shift: they are band-limited by the pre-blur, and blur and Sobel commute with the shift.
   double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift);
   // Fills a field's vectors and weights from gradients; validity already in out->valid.
-  void Normalise(const cv::Mat& gx, const cv::Mat& gy, Field* out) const;
+  // weight_cap > 0: vectors weighted by min(weight_cap, m / median m) (magnitude_weight_cap).
+  void Normalise(const cv::Mat& gx, const cv::Mat& gy, double weight_cap, Field* out);
   Status CheckFlat(const Field& f, const char* which, std::string* reason) const;
   void ForwardDft(const cv::Mat& src, int nonzero_rows, cv::Mat* spectrum);
   void InverseDft(const cv::Mat& spectrum, int output_rows, cv::Mat* out);
@@ -163,6 +181,7 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // Scratch, reused between calls.
   Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
   cv::Mat shifted_gx_, shifted_gy_;
+  std::vector<float> magnitudes_;  // sample for the median gradient magnitude
   cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
