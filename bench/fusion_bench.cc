@@ -41,8 +41,8 @@ Result Run(const testing::Sweep& s, bool optimize, double rate_fps) {
     const auto t0 = Clock::now();
     fusion.Push(std::move(f));
     r.latency_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
-    std::this_thread::sleep_until(start + std::chrono::microseconds(
-                                              static_cast<int64_t>(1e6 * (i + 1) / rate_fps)));
+    std::this_thread::sleep_until(
+        start + std::chrono::microseconds(static_cast<int64_t>(1e6 * (i + 1) / rate_fps)));
   }
   fusion.Finish();
   const auto placements = fusion.Placements();
@@ -79,7 +79,8 @@ int main(int argc, char** argv) {
   }
   const testing::Sweep s = testing::MakeSweep(frames, 6, 2.0, 0.3, 7);
   std::vector<double> pos_rmse;
-  for (int i = 0; i < frames; ++i) pos_rmse.push_back(testing::PlacementRmse(s.pos[i], s.truth[i], s.camera));
+  for (int i = 0; i < frames; ++i)
+    pos_rmse.push_back(testing::PlacementRmse(s.pos[i], s.truth[i], s.camera));
   const Result with = Run(s, true, rate), without = Run(s, false, rate);
   std::printf("%-22s %10s %10s %10s %10s %10s %12s\n", "run", "mean_px", "p95_px", "max_px",
               "seam_px", "lat_p50ms", "lat_p99ms");
@@ -88,18 +89,20 @@ int main(int argc, char** argv) {
                 Percentile(r.rmse, 0.95), Percentile(r.rmse, 1.0), Mean(r.seam),
                 Percentile(r.latency_ms, 0.5), Percentile(r.latency_ms, 0.99));
   };
-  std::printf("%-22s %10.3f %10.3f %10.3f\n", "POS only", Mean(pos_rmse), Percentile(pos_rmse, 0.95),
-              Percentile(pos_rmse, 1.0));
+  std::printf("%-22s %10.3f %10.3f %10.3f\n", "POS only", Mean(pos_rmse),
+              Percentile(pos_rmse, 0.95), Percentile(pos_rmse, 1.0));
   row("with optimization", with);
   row("without optimization", without);
-  std::printf("optimizer: %lld solves, mean %.0f ms, max %.0f ms per window, lag at the end %lld frames\n",
-              static_cast<long long>(with.stats.solves),
-              with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0,
-              with.stats.max_solve_ms, static_cast<long long>(with.stats.optimizer_lag_frames));
+  std::printf(
+      "optimizer: %lld solves, mean %.0f ms, max %.0f ms per window, lag at the end %lld frames\n",
+      static_cast<long long>(with.stats.solves),
+      with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0,
+      with.stats.max_solve_ms, static_cast<long long>(with.stats.optimizer_lag_frames));
   if (!plot_path.empty()) {
     std::vector<PlacementScore> scores(3);
     const std::vector<const std::vector<double>*> series = {&with.rmse, &without.rmse, &pos_rmse};
-    const char* names[] = {"with global optimization", "without (real-time mapping only)", "POS only"};
+    const char* names[] = {"with global optimization", "without (real-time mapping only)",
+                           "POS only"};
     for (int k = 0; k < 3; ++k) {
       scores[k].name = names[k];
       scores[k].rmse_px = ComputeErrorStats(*series[k]);
@@ -115,16 +118,25 @@ int main(int argc, char** argv) {
   }
   if (!json_path.empty()) {
     nlohmann::json doc = {
-        {"benchmark", "fusion"}, {"frames", frames}, {"rate_fps", rate},
+        {"benchmark", "fusion"},
+        {"frames", frames},
+        {"rate_fps", rate},
         {"pos_only", {{"mean_px", Mean(pos_rmse)}, {"max_px", Percentile(pos_rmse, 1.0)}}},
-        {"with_optimization", {{"mean_px", Mean(with.rmse)}, {"p95_px", Percentile(with.rmse, 0.95)},
-                               {"max_px", Percentile(with.rmse, 1.0)}, {"seam_mean_px", Mean(with.seam)},
-                               {"latency_p50_ms", Percentile(with.latency_ms, 0.5)},
-                               {"latency_p99_ms", Percentile(with.latency_ms, 0.99)},
-                               {"solves", with.stats.solves}, {"max_solve_ms", with.stats.max_solve_ms},
-                               {"rmse_px", with.rmse}}},
-        {"without_optimization", {{"mean_px", Mean(without.rmse)}, {"max_px", Percentile(without.rmse, 1.0)},
-                                  {"seam_mean_px", Mean(without.seam)}, {"rmse_px", without.rmse}}}};
+        {"with_optimization",
+         {{"mean_px", Mean(with.rmse)},
+          {"p95_px", Percentile(with.rmse, 0.95)},
+          {"max_px", Percentile(with.rmse, 1.0)},
+          {"seam_mean_px", Mean(with.seam)},
+          {"latency_p50_ms", Percentile(with.latency_ms, 0.5)},
+          {"latency_p99_ms", Percentile(with.latency_ms, 0.99)},
+          {"solves", with.stats.solves},
+          {"max_solve_ms", with.stats.max_solve_ms},
+          {"rmse_px", with.rmse}}},
+        {"without_optimization",
+         {{"mean_px", Mean(without.rmse)},
+          {"max_px", Percentile(without.rmse, 1.0)},
+          {"seam_mean_px", Mean(without.seam)},
+          {"rmse_px", without.rmse}}}};
     std::ofstream(json_path) << doc.dump(1) << "\n";
   }
   return 0;

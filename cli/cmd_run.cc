@@ -168,16 +168,21 @@ int RunRun(int argc, char** argv) {
       {"gsd_m", s.gsd_m},
       {"origin", {{"lat_deg", s.origin_lat_deg}, {"lon_deg", s.origin_lon_deg}}},
       {"generations_published", s.generations_published},
-      {"publish_latency_s", {{"p50", s.publish_latency_p50_s}, {"p99", s.publish_latency_p99_s},
-                             {"max", s.publish_latency_max_s}}},
-      {"optimizer", {{"solves", s.fusion.solves}, {"max_solve_ms", s.fusion.max_solve_ms},
-                     {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
-                     {"rerendered_frames", s.fusion.rerendered_frames}}},
+      {"publish_latency_s",
+       {{"p50", s.publish_latency_p50_s},
+        {"p99", s.publish_latency_p99_s},
+        {"max", s.publish_latency_max_s}}},
+      {"optimizer",
+       {{"solves", s.fusion.solves},
+        {"max_solve_ms", s.fusion.max_solve_ms},
+        {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
+        {"rerendered_frames", s.fusion.rerendered_frames}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},
       {"placements", placements_path}};
-  const std::string report_path = args.Get("--report").empty()
-                                      ? (std::filesystem::path(options.store_path) / "run_report.json").string()
-                                      : args.Get("--report");
+  const std::string report_path =
+      args.Get("--report").empty()
+          ? (std::filesystem::path(options.store_path) / "run_report.json").string()
+          : args.Get("--report");
   std::ofstream(report_path) << report.dump(2) << "\n";
   if (s.frames_placed == 0) {
     std::cerr << "irmosaic run: error: no frame could be placed (see the warnings above)\n";

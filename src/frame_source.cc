@@ -65,8 +65,10 @@ class VideoSource : public FrameSource {
   VideoSource(const std::string& path, const Options& options) : path_(path), options_(options) {
     capture_.open(path);
     if (!capture_.isOpened()) {
-      throw InputError({path, 0, 0, ""}, "OpenCV cannot open this video (unsupported codec or "
-                       "container, or not a video)", "convert it to an image sequence or a "
+      throw InputError({path, 0, 0, ""},
+                       "OpenCV cannot open this video (unsupported codec or "
+                       "container, or not a video)",
+                       "convert it to an image sequence or a "
                        "format FFmpeg reads, e.g. ffmpeg -i IN -c:v ffv1 OUT.mkv");
     }
     const double count = capture_.get(cv::CAP_PROP_FRAME_COUNT);
@@ -148,7 +150,8 @@ std::vector<FileListSource::Entry> ReadFrameCsv(const std::string& path) {
       throw InputError({path, line_number, 0, ""}, "index or time is not a number",
                        "write a whole index and a time in seconds");
     }
-    if (!entries.empty() && (e.index <= entries.back().index || e.time_s <= entries.back().time_s)) {
+    if (!entries.empty() &&
+        (e.index <= entries.back().index || e.time_s <= entries.back().time_s)) {
       throw InputError({path, line_number, 0, ""}, "index and time must increase from row to row",
                        "sort the frame list");
     }
@@ -166,8 +169,7 @@ std::vector<FileListSource::Entry> ReadFrameCsv(const std::string& path) {
 
 std::unique_ptr<FrameSource> FrameSource::Open(const std::string& path, const Options& options) {
   if (!(options.fps > 0.0) || !std::isfinite(options.t0_s)) {
-    throw InputError({"--fps", 0, 0, ""}, "the frame rate must be positive",
-                     "give --fps, e.g. 25");
+    throw InputError({"--fps", 0, 0, ""}, "the frame rate must be positive", "give --fps, e.g. 25");
   }
   std::error_code ec;
   if (!fs::exists(path, ec)) {
@@ -185,11 +187,13 @@ std::unique_ptr<FrameSource> FrameSource::Open(const std::string& path, const Op
     }
     std::vector<FileListSource::Entry> entries;
     for (size_t i = 0; i < files.size(); ++i) {
-      entries.push_back({static_cast<int64_t>(i), options.t0_s + i / options.fps, files[i].string()});
+      entries.push_back(
+          {static_cast<int64_t>(i), options.t0_s + i / options.fps, files[i].string()});
     }
     return std::make_unique<FileListSource>(std::move(entries));
   }
-  if (fs::path(path).extension() == ".csv") return std::make_unique<FileListSource>(ReadFrameCsv(path));
+  if (fs::path(path).extension() == ".csv")
+    return std::make_unique<FileListSource>(ReadFrameCsv(path));
   if (IsImageFile(path)) {
     return std::make_unique<FileListSource>(
         std::vector<FileListSource::Entry>{{0, options.t0_s, path}});

@@ -30,9 +30,12 @@ double RoundSignificant(double value, int digits) {
 
 PixelType PixelTypeOf(const cv::Mat& image) {
   switch (image.depth()) {
-    case CV_8U: return PixelType::kByte;
-    case CV_16U: return PixelType::kUInt16;
-    default: return PixelType::kFloat32;
+    case CV_8U:
+      return PixelType::kByte;
+    case CV_16U:
+      return PixelType::kUInt16;
+    default:
+      return PixelType::kFloat32;
   }
 }
 
@@ -74,8 +77,10 @@ class Mosaicker::Impl : public MosaicSink {
       throw InputError({"options", 0, 0, ""}, error, "correct the option");
     }
     const PosRecord& first = pos_.records().front();
-    const double lat0 = std::isnan(options_.origin_lat_deg) ? first.lat_deg : options_.origin_lat_deg;
-    const double lon0 = std::isnan(options_.origin_lon_deg) ? first.lon_deg : options_.origin_lon_deg;
+    const double lat0 =
+        std::isnan(options_.origin_lat_deg) ? first.lat_deg : options_.origin_lat_deg;
+    const double lon0 =
+        std::isnan(options_.origin_lon_deg) ? first.lon_deg : options_.origin_lon_deg;
     frame_ = std::make_unique<LocalFrame>(lat0, lon0);
     double gsd = options_.gsd_m;
     if (gsd == 0.0) {
@@ -110,8 +115,8 @@ class Mosaicker::Impl : public MosaicSink {
     PushResult result;
     Count(&MosaickerSummary::frames_pushed);
     auto skip = [&](const std::string& reason) {
-      result.reason = "frame " + std::to_string(index) + " (time " + Format(time_s) + " s): " +
-                      reason;
+      result.reason =
+          "frame " + std::to_string(index) + " (time " + Format(time_s) + " s): " + reason;
       Count(&MosaickerSummary::frames_skipped);
       return result;
     };
@@ -145,9 +150,9 @@ class Mosaicker::Impl : public MosaicSink {
     } catch (const InputError& e) {
       return skip(e.problem());
     }
-    frame.prior_sqrt_information = PosPriorSqrtInformation(
-        camera_, pose.pose, *frame_, grid_, ground_, options_.pos_position_sigma_m,
-        options_.pos_attitude_sigma_deg, 0.2);
+    frame.prior_sqrt_information = PosPriorSqrtInformation(camera_, pose.pose, *frame_, grid_,
+                                                           ground_, options_.pos_position_sigma_m,
+                                                           options_.pos_attitude_sigma_deg, 0.2);
     if (!store_) OpenStore(PixelTypeOf(image));
     result.placement = fusion_->Push(std::move(frame));
     result.status = PushResult::Status::kPlaced;
@@ -160,7 +165,8 @@ class Mosaicker::Impl : public MosaicSink {
     }
     // Publish on a clock: each frame waits at most one interval plus the writer's work.
     pending_.push_back({arrival, 0});
-    if (Clock::now() - last_publish_ >= std::chrono::duration<double>(options_.publish_interval_s)) {
+    if (Clock::now() - last_publish_ >=
+        std::chrono::duration<double>(options_.publish_interval_s)) {
       RequestPublish();
     }
     CollectLatencies();
@@ -328,7 +334,8 @@ class Mosaicker::Impl : public MosaicSink {
       for (int x = kStep / 2; x < tm.cols; x += kStep) {
         if (tm.at<uint8_t>(y, x) == 0) continue;
         const Eigen::Vector2d q = ApplyHomography(r.base_from_template, {x, y});
-        const int bx = static_cast<int>(std::lround(q.x())), by = static_cast<int>(std::lround(q.y()));
+        const int bx = static_cast<int>(std::lround(q.x())),
+                  by = static_cast<int>(std::lround(q.y()));
         if (bx < 0 || by < 0 || bx >= bm.cols || by >= bm.rows || bm.at<uint8_t>(by, bx) == 0) {
           continue;
         }
@@ -341,8 +348,9 @@ class Mosaicker::Impl : public MosaicSink {
       match.reason = "the registered overlap is too small for tie points";
       return match;
     }
-    const double sigma_h = r.joint_patches > 0 ? r.joint_sigma_px
-                                               : r.residual_rms_px / std::sqrt(std::max(1, r.inliers / 4));
+    const double sigma_h = r.joint_patches > 0
+                               ? r.joint_sigma_px
+                               : r.residual_rms_px / std::sqrt(std::max(1, r.inliers / 4));
     match.tie_sigma_px =
         std::max(0.05, sigma_h) * std::sqrt(static_cast<double>(in_template.size()) / 4.0);
     for (size_t k = 0; k < in_template.size(); ++k) {
@@ -359,11 +367,11 @@ class Mosaicker::Impl : public MosaicSink {
     std::lock_guard<std::mutex> lock(mu_);
     while (!pending_.empty() && pending_.front().second != 0 &&
            pending_.front().second <= published) {
-      latencies_s_.push_back(
-          std::chrono::duration<double>(now - pending_.front().first).count());
+      latencies_s_.push_back(std::chrono::duration<double>(now - pending_.front().first).count());
       pending_.pop_front();
     }
-    if (latencies_s_.size() > 200000) latencies_s_.erase(latencies_s_.begin(), latencies_s_.begin() + 100000);
+    if (latencies_s_.size() > 200000)
+      latencies_s_.erase(latencies_s_.begin(), latencies_s_.begin() + 100000);
   }
 
   MosaickerOptions options_;

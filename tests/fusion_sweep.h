@@ -26,7 +26,7 @@ struct Sweep {
 };
 
 inline Sweep MakeSweep(int frames, int per_sweep, double pos_sigma_m, double att_sigma_deg,
-                uint32_t seed) {
+                       uint32_t seed) {
   Sweep s;
   std::mt19937 rng(seed);
   std::normal_distribution<double> pos_noise(0.0, pos_sigma_m), att_noise(0.0, att_sigma_deg);
@@ -64,7 +64,7 @@ inline Sweep MakeSweep(int frames, int per_sweep, double pos_sigma_m, double att
 
 // RMSE (mosaic px) of a 5x5 grid of the frame's pixels placed by `h` against the truth.
 inline double PlacementRmse(const Eigen::Matrix3d& h, const Eigen::Matrix3d& truth,
-                     const CameraModel& camera) {
+                            const CameraModel& camera) {
   double sum = 0.0;
   for (int j = 0; j < 5; ++j)
     for (int i = 0; i < 5; ++i) {
@@ -76,7 +76,7 @@ inline double PlacementRmse(const Eigen::Matrix3d& h, const Eigen::Matrix3d& tru
 
 // Ties from the true relative homography on a grid inside the overlap, with Gaussian noise.
 inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t seed,
-                              std::pair<int64_t, int64_t> corrupt = {-1, -1}) {
+                                     std::pair<int64_t, int64_t> corrupt = {-1, -1}) {
   auto rng = std::make_shared<std::mt19937>(seed);
   auto mu = std::make_shared<std::mutex>();
   return [&s, noise_px, rng, mu, corrupt](const FusionFrame& base, const FusionFrame& templ) {
@@ -106,7 +106,8 @@ inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t s
 
 // Placement RMSE after removing the best global similarity between run and truth: how well
 // the frames fit each other (seams), apart from where POS put the whole mosaic.
-inline std::vector<double> RelativeRmse(const std::vector<FramePlacement>& placements, const Sweep& s) {
+inline std::vector<double> RelativeRmse(const std::vector<FramePlacement>& placements,
+                                        const Sweep& s) {
   std::vector<cv::Point2f> run_pts, true_pts;
   const Eigen::Vector2d centre((s.camera.width - 1) / 2.0, (s.camera.height - 1) / 2.0);
   for (const FramePlacement& p : placements) {
@@ -129,7 +130,7 @@ inline std::vector<double> RelativeRmse(const std::vector<FramePlacement>& place
 // Seam misalignment between frames i and j: points of j, placed by j's homography and by i's
 // (through the truth), differ by this RMS (mosaic px). What a viewer sees at the seam.
 inline double SeamRmse(const std::vector<FramePlacement>& placements, const Sweep& s, int64_t i,
-                int64_t j) {
+                       int64_t j) {
   double sum = 0.0;
   int n = 0;
   for (int y = 0; y < s.camera.height; y += 64) {
@@ -147,6 +148,5 @@ inline double SeamRmse(const std::vector<FramePlacement>& placements, const Swee
   }
   return n > 0 ? std::sqrt(sum / n) : 0.0;
 }
-
 
 }  // namespace irmosaic::testing

@@ -1,7 +1,6 @@
 // Map fusion against ground truth with an ideal-but-noisy registrar: the optimizer removes POS
 // error and chaining drift; a corrupted pair is down-weighted; gains are compensated.
 #include "irmosaic/map_fusion.h"
-#include "fusion_sweep.h"
 
 #include <gtest/gtest.h>
 
@@ -11,6 +10,7 @@
 #include <random>
 #include <thread>
 
+#include "fusion_sweep.h"
 #include "irmosaic/frame_geometry.h"
 
 namespace irmosaic {

@@ -1,12 +1,13 @@
 // The whole pipeline as a library object on a simulated flight: radiometric compensation of
 // automatic-gain-control jumps, and bad frames skipped with reasons.
+#include "irmosaic/mosaicker.h"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
 #include <opencv2/imgproc.hpp>
 
 #include "irmosaic/frame_geometry.h"
-#include "irmosaic/mosaicker.h"
 #include "irmosaic/orthorectify.h"
 #include "irmosaic/simulator.h"
 #include "test_data.h"
@@ -38,10 +39,12 @@ double OverlapDifference(const FlightSimulator& sim, const std::vector<FramePlac
   const cv::Rect common = ra & rb;
   if (common.area() == 0) return -1.0;
   cv::Mat va, vb;
-  a.image(common - a.origin_px).convertTo(va, CV_32F, compensated ? placed[i].gain : 1.0,
-                                          compensated ? placed[i].offset : 0.0);
-  b.image(common - b.origin_px).convertTo(vb, CV_32F, compensated ? placed[j].gain : 1.0,
-                                          compensated ? placed[j].offset : 0.0);
+  a.image(common - a.origin_px)
+      .convertTo(va, CV_32F, compensated ? placed[i].gain : 1.0,
+                 compensated ? placed[i].offset : 0.0);
+  b.image(common - b.origin_px)
+      .convertTo(vb, CV_32F, compensated ? placed[j].gain : 1.0,
+                 compensated ? placed[j].offset : 0.0);
   cv::Mat both = a.mask(common - a.origin_px) & b.mask(common - b.origin_px);
   cv::erode(both, both, cv::Mat(), cv::Point(-1, -1), 3);
   if (cv::countNonZero(both) < 500) return -1.0;

@@ -28,7 +28,8 @@ class RunCliTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     GDALAllRegister();
-    dir_ = (fs::temp_directory_path() / ("irmosaic_run_cli_" + std::to_string(::getpid()))).string();
+    dir_ =
+        (fs::temp_directory_path() / ("irmosaic_run_cli_" + std::to_string(::getpid()))).string();
     fs::remove_all(dir_);
     SynthOptions options;
     options.ground_path = testing::SamplePath("sample_flight/ground_naip_2019.tif");
@@ -78,8 +79,8 @@ TEST_F(RunCliTest, MosaicIsGeoreferencedWhereTheTruthIs) {
   EXPECT_TRUE(actual.IsSame(&expected)) << vrt->GetProjectionRef();
   // Placement against the truth, in truth pixels (the GSD): within one pixel.
   const PlacementScore score = Evaluator(truth).ScorePlacements(run, "run");
-  std::printf("placement vs truth: mean %.3f px, max %.3f px over %d frames\n",
-              score.rmse_px.mean, score.rmse_px.max, score.frames_scored);
+  std::printf("placement vs truth: mean %.3f px, max %.3f px over %d frames\n", score.rmse_px.mean,
+              score.rmse_px.max, score.frames_scored);
   EXPECT_EQ(score.frames_scored, 64);
   EXPECT_LT(score.rmse_px.mean, 1.0);
   EXPECT_LT(score.rmse_px.max, 2.0);
@@ -102,9 +103,9 @@ TEST_F(RunCliTest, MosaicIsGeoreferencedWhereTheTruthIs) {
     GDALDatasetUniquePtr frame(GDALDataset::Open((dir_ + name).c_str(), GDAL_OF_RASTER));
     ASSERT_TRUE(frame) << name;
     uint16_t own[9];
-    ASSERT_EQ(frame->GetRasterBand(1)->RasterIO(GF_Read, 318, 254, 3, 3, own, 3, 3, GDT_UInt16, 0,
-                                                0),
-              CE_None);
+    ASSERT_EQ(
+        frame->GetRasterBand(1)->RasterIO(GF_Read, 318, 254, 3, 3, own, 3, 3, GDT_UInt16, 0, 0),
+        CE_None);
     double a = 0, b = 0;
     for (int k = 0; k < 9; ++k) {
       a += mosaic[k] / 9.0;
@@ -167,10 +168,9 @@ TEST_F(RunCliTest, KillNineThenResumeMatchesAnUninterruptedRun) {
     ASSERT_TRUE(vrt) << CPLGetLastErrorMsg();
     // Every pixel reads without error.
     std::vector<uint16_t> all(static_cast<size_t>(vrt->GetRasterXSize()) * vrt->GetRasterYSize());
-    EXPECT_EQ(vrt->GetRasterBand(1)->RasterIO(GF_Read, 0, 0, vrt->GetRasterXSize(),
-                                              vrt->GetRasterYSize(), all.data(),
-                                              vrt->GetRasterXSize(), vrt->GetRasterYSize(),
-                                              GDT_UInt16, 0, 0),
+    EXPECT_EQ(vrt->GetRasterBand(1)->RasterIO(
+                  GF_Read, 0, 0, vrt->GetRasterXSize(), vrt->GetRasterYSize(), all.data(),
+                  vrt->GetRasterXSize(), vrt->GetRasterYSize(), GDT_UInt16, 0, 0),
               CE_None)
         << CPLGetLastErrorMsg();
   }

@@ -13,8 +13,8 @@ namespace irmosaic {
 struct SourceFrame {
   int64_t index = 0;
   double time_s = 0.0;
-  cv::Mat image;      // One channel, CV_8U, CV_16U or CV_32F (colour is converted to gray).
-  std::string name;   // File name or "video frame N", for messages.
+  cv::Mat image;     // One channel, CV_8U, CV_16U or CV_32F (colour is converted to gray).
+  std::string name;  // File name or "video frame N", for messages.
 };
 
 // Frames from a video file (OpenCV), a folder of images, or a frame list CSV
@@ -22,8 +22,8 @@ struct SourceFrame {
 class IRMOSAIC_EXPORT FrameSource {
  public:
   struct Options {
-    double fps = 25.0;   // Frame rate for videos and folders (time = t0 + i / fps).
-    double t0_s = 0.0;   // Time of the first frame for videos and folders.
+    double fps = 25.0;  // Frame rate for videos and folders (time = t0 + i / fps).
+    double t0_s = 0.0;  // Time of the first frame for videos and folders.
   };
   // Throws InputError naming the path and the fix (missing, unsupported, empty).
   static std::unique_ptr<FrameSource> Open(const std::string& path, const Options& options);

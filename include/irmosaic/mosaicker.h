@@ -27,12 +27,12 @@ struct MosaickerOptions {
   // Flight origin (the mosaic plane's tangent point); NaN: the first POS record.
   double origin_lat_deg = std::numeric_limits<double>::quiet_NaN();
   double origin_lon_deg = std::numeric_limits<double>::quiet_NaN();
-  double ground_height_m = 0.0;          // Ellipsoidal height of the ground.
-  double pos_position_sigma_m = 2.0;     // POS accuracy (1 sigma) per axis.
-  double pos_attitude_sigma_deg = 0.3;   // POS accuracy (1 sigma) per angle.
-  double search_radius_px = 64.0;        // SCD search around the POS prediction.
-  double max_range_m = 30000.0;          // Rays longer than this: frame refused.
-  double publish_interval_s = 0.25;      // How often the store publishes a new generation.
+  double ground_height_m = 0.0;         // Ellipsoidal height of the ground.
+  double pos_position_sigma_m = 2.0;    // POS accuracy (1 sigma) per axis.
+  double pos_attitude_sigma_deg = 0.3;  // POS accuracy (1 sigma) per angle.
+  double search_radius_px = 64.0;       // SCD search around the POS prediction.
+  double max_range_m = 30000.0;         // Rays longer than this: frame refused.
+  double publish_interval_s = 0.25;     // How often the store publishes a new generation.
   int tile_size = 512;
   std::string compression = "ZSTD";
   FusionOptions fusion;
@@ -45,8 +45,8 @@ struct MosaickerOptions {
 struct PushResult {
   enum class Status { kPlaced, kSkipped };
   Status status = Status::kSkipped;
-  std::string reason;         // Why skipped (no POS, ray above the horizon, bad image...).
-  FramePlacement placement;   // Valid when placed.
+  std::string reason;        // Why skipped (no POS, ray above the horizon, bad image...).
+  FramePlacement placement;  // Valid when placed.
   bool placed() const { return status == Status::kPlaced; }
 };
 
