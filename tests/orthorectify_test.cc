@@ -30,13 +30,13 @@ double Bilinear(const cv::Mat& image, double x, double y) {
   return sample.at<float>(0);
 }
 
-Eigen::Matrix3d ObliqueHomography(const CameraModel& camera) {
+Eigen::Matrix3d ObliqueHomography(const CameraModel& camera, double sweep_deg = -35.0) {
   PosRecord r;
   r.lat_deg = 47.2;
   r.lon_deg = 8.5;
   r.height_m = 1000.0;
   r.yaw_deg = 33.0;
-  r.gimbal_roll_deg = -35.0;
+  r.gimbal_roll_deg = sweep_deg;
   const FrameGeometry g = ComputeFrameGeometry(camera, PoseFromRecord(r), LocalFrame(47.2, 8.5),
                                                MosaicGrid{0.5}, FlatGround(0.0));
   EXPECT_TRUE(g.ok) << g.problem;
@@ -53,11 +53,14 @@ cv::Mat Ramp(int width, int height, double gx, double gy) {
   return image;
 }
 
-TEST(OrthorectifyTest, PixelsLandWhereTheHomographySaysWithin0p05px) {
+// Oblique frames take warpPerspective; near-nadir ones the affine shortcut (within 0.01 px).
+class OrthorectifyPlacement : public ::testing::TestWithParam<double> {};
+
+TEST_P(OrthorectifyPlacement, PixelsLandWhereTheHomographySaysWithin0p05px) {
   const CameraModel camera = DefaultInfraredCamera();
   const double gx = 40.0, gy = 27.0;
   const cv::Mat frame = Ramp(camera.width, camera.height, gx, gy);
-  const Eigen::Matrix3d h = ObliqueHomography(camera);
+  const Eigen::Matrix3d h = ObliqueHomography(camera, GetParam());
   const OrthoImage ortho = Orthorectify(frame, camera, h);
   ASSERT_FALSE(ortho.empty());
   EXPECT_EQ(ortho.image.type(), CV_16U);
@@ -80,6 +83,8 @@ TEST(OrthorectifyTest, PixelsLandWhereTheHomographySaysWithin0p05px) {
   // Position error in frame pixels (OpenCV warps at 1/32 px; 16-bit rounding adds 0.5 DN).
   EXPECT_LT(worst_dn / std::hypot(gx, gy), 0.05) << worst_dn << " DN";
 }
+
+INSTANTIATE_TEST_SUITE_P(SweepAngles, OrthorectifyPlacement, ::testing::Values(-35.0, 0.0));
 
 TEST(OrthorectifyTest, MaskCoversExactlyTheFootprint) {
   const CameraModel camera = DefaultInfraredCamera();
