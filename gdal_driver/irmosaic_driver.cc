@@ -583,7 +583,8 @@ GDALDataset* OpenStore(GDALOpenInfo* info) {
   }
   const std::string manifest = ManifestPathOf(info);
   auto index = std::make_shared<StoreIndex>();
-  index->root = RealPath(CPLGetPath(manifest.c_str()));
+  const std::string folder = CPLGetPath(manifest.c_str());
+  index->root = RealPath(folder.empty() ? "." : folder);
   if (index->root.empty()) {
     CPLError(CE_Failure, CPLE_OpenFailed, "IRMOSAIC: cannot resolve the folder of %s",
              manifest.c_str());

@@ -76,11 +76,13 @@ def main():
     check(painted > 0, "render is not empty (%d painted samples)" % painted)
     check(painted < 128 * 128, "uncovered area renders transparent (%d of %d painted)" %
           (painted, 128 * 128))
-    app.exitQgis()
     shutil.rmtree(work, ignore_errors=True)
     print("%d failure(s)" % len(failures))
-    return 1 if failures else 0
+    sys.stdout.flush()
+    # QGIS 3.22 can crash while tearing down under offscreen Qt (as in test_store_qgis.py);
+    # the verdict is already known.
+    os._exit(1 if failures else 0)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
