@@ -1,0 +1,416 @@
+// IRMOSAIC GDAL driver: registered in-process (geometry, values against mosaic.vrt, growth,
+// malformed manifests) and loaded as a plug-in by GDAL's own tools (gdalinfo, gdal_translate).
+#include <gdal.h>
+#include <gdal_alg.h>
+#include <gdal_priv.h>
+#include <gtest/gtest.h>
+#include <ogr_spatialref.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "irmosaic/local_frame.h"
+#include "irmosaic/tile_store.h"
+#include "irmosaic_driver.h"
+
+namespace irmosaic {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr double kLat0 = 47.2, kLon0 = 8.5, kGsd = 0.5;
+
+fs::path FreshDir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() /
+                       ("irmosaic_gdal_driver_test_" + std::to_string(::getpid()) + "_" + name);
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir;
+}
+
+void PaintSquare(TileStore* store, cv::Point top_left, int size, double value) {
+  cv::Mat image(size, size, CvDepthOf(store->pixel_type()), cv::Scalar(value));
+  cv::Mat w(size, size, CV_32F, cv::Scalar(1.0));
+  // A gradient so that checksums see the position of every sample.
+  for (int r = 0; r < size; ++r) image.row(r) += cv::Scalar(r % 97);
+  store->Paint(image, w, top_left);
+}
+
+FrameRecord Frame(int64_t index, double time_s) {
+  FrameRecord record;
+  record.index = index;
+  record.time_s = time_s;
+  record.footprint_m = {Eigen::Vector2d(0, 0), Eigen::Vector2d(10, 0), Eigen::Vector2d(10, -10),
+                        Eigen::Vector2d(0, -10)};
+  record.status = "registered";
+  return record;
+}
+
+// A store of 256-pixel tiles: an L of painted squares over 3 x 3 tiles (some absent), two frames.
+std::unique_ptr<TileStore> MakeStore(const fs::path& dir) {
+  TileStoreOptions options;
+  options.path = dir.string();
+  options.tile_size = 256;
+  const LocalFrame frame(kLat0, kLon0);
+  auto store = TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
+  PaintSquare(store.get(), {-100, -50}, 300, 1000);
+  PaintSquare(store.get(), {300, 300}, 200, 2000);
+  store->PutFrameRecord(Frame(0, 10.0));
+  store->PutFrameRecord(Frame(1, 10.04));
+  store->WaitPublished(store->RequestPublish());
+  return store;
+}
+
+struct GdalErrors {
+  GdalErrors() { CPLPushErrorHandlerEx(&Handler, this); }
+  ~GdalErrors() { CPLPopErrorHandler(); }
+  static void CPL_STDCALL Handler(CPLErr level, CPLErrorNum, const char* message) {
+    auto* self = static_cast<GdalErrors*>(CPLGetErrorHandlerUserData());
+    if (level >= CE_Failure) {
+      ++self->count;
+      self->last = message ? message : "";
+    }
+  }
+  int count = 0;
+  std::string last;
+};
+
+GDALDatasetUniquePtr OpenWith(const fs::path& path, const char* driver, bool update = false) {
+  GDALAllRegister();
+  GDALRegister_IRMOSAIC();
+  const char* const allowed[] = {driver, nullptr};
+  return GDALDatasetUniquePtr(
+      GDALDataset::Open(path.c_str(), GDAL_OF_RASTER | (update ? GDAL_OF_UPDATE : GDAL_OF_READONLY),
+                        allowed, nullptr, nullptr));
+}
+
+int Checksum(GDALRasterBand* band) {
+  return GDALChecksumImage(band, 0, 0, band->GetXSize(), band->GetYSize());
+}
+
+class GdalDriverTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = FreshDir(::testing::UnitTest::GetInstance()->current_test_info()->name()) / "s.irmosaic";
+    store_ = MakeStore(dir_);
+  }
+  void TearDown() override {
+    if (store_) store_->Close();
+    fs::remove_all(dir_.parent_path());
+  }
+  fs::path dir_;
+  std::unique_ptr<TileStore> store_;
+};
+
+TEST_F(GdalDriverTest, MatchesMosaicVrtInGeometryCrsAndEveryLevelsChecksums) {
+  auto ours = OpenWith(dir_, "IRMOSAIC");
+  auto vrt = OpenWith(dir_ / "mosaic.vrt", "VRT");
+  ASSERT_TRUE(ours);
+  ASSERT_TRUE(vrt);
+  EXPECT_STREQ(ours->GetDriver()->GetDescription(), "IRMOSAIC");
+  EXPECT_EQ(ours->GetRasterXSize(), vrt->GetRasterXSize());
+  EXPECT_EQ(ours->GetRasterYSize(), vrt->GetRasterYSize());
+  EXPECT_EQ(ours->GetRasterXSize(), 3 * 256);  // Tiles -1..1 in both axes.
+  double gt_ours[6], gt_vrt[6];
+  ASSERT_EQ(ours->GetGeoTransform(gt_ours), CE_None);
+  ASSERT_EQ(vrt->GetGeoTransform(gt_vrt), CE_None);
+  for (int i = 0; i < 6; ++i) EXPECT_NEAR(gt_ours[i], gt_vrt[i], 1e-9) << i;
+  ASSERT_NE(ours->GetSpatialRef(), nullptr);
+  EXPECT_TRUE(ours->GetSpatialRef()->IsSame(vrt->GetSpatialRef()));
+  ASSERT_EQ(ours->GetRasterCount(), 2);
+  EXPECT_EQ(ours->GetRasterBand(1)->GetRasterDataType(), GDT_UInt16);
+  EXPECT_EQ(ours->GetRasterBand(2)->GetColorInterpretation(), GCI_AlphaBand);
+  EXPECT_EQ(ours->GetRasterBand(1)->GetMaskFlags(), GMF_ALPHA | GMF_PER_DATASET);
+  const int overviews = vrt->GetRasterBand(1)->GetOverviewCount();
+  ASSERT_GE(overviews, 1);
+  ASSERT_EQ(ours->GetRasterBand(1)->GetOverviewCount(), overviews);
+  GdalErrors errors;
+  for (int b = 1; b <= 2; ++b) {
+    const int sum = Checksum(ours->GetRasterBand(b));
+    EXPECT_EQ(sum, Checksum(vrt->GetRasterBand(b))) << "band " << b;
+    EXPECT_NE(sum, 0);
+    for (int o = 0; o < overviews; ++o) {
+      GDALRasterBand* a = ours->GetRasterBand(b)->GetOverview(o);
+      GDALRasterBand* v = vrt->GetRasterBand(b)->GetOverview(o);
+      ASSERT_EQ(a->GetXSize(), v->GetXSize());
+      ASSERT_EQ(a->GetYSize(), v->GetYSize());
+      EXPECT_EQ(Checksum(a), Checksum(v)) << "band " << b << " overview " << o;
+    }
+  }
+  EXPECT_EQ(errors.count, 0) << errors.last;
+  // A painted sample and an absent tile (top-right, tile (-1, 1)) read back exactly.
+  uint16_t value = 0, alpha = 1;
+  ASSERT_EQ(ours->GetRasterBand(1)->RasterIO(GF_Read, 256 - 100, 256 - 50, 1, 1, &value, 1, 1,
+                                             GDT_UInt16, 0, 0, nullptr),
+            CE_None);
+  EXPECT_EQ(value, 1000);
+  ASSERT_EQ(ours->GetRasterBand(2)->RasterIO(GF_Read, 700, 10, 1, 1, &alpha, 1, 1, GDT_UInt16, 0, 0,
+                                             nullptr),
+            CE_None);
+  EXPECT_EQ(alpha, 0);
+}
+
+TEST_F(GdalDriverTest, OpensTheManifestPathAndTellsTheStoresMetadata) {
+  auto ds = OpenWith(dir_ / "manifest.json", "IRMOSAIC");
+  ASSERT_TRUE(ds);
+  EXPECT_STREQ(ds->GetMetadataItem("IRMOSAIC_GENERATION"), "1");
+  EXPECT_STREQ(ds->GetMetadataItem("IRMOSAIC_FRAME_COUNT"), "2");
+  EXPECT_NEAR(std::atof(ds->GetMetadataItem("IRMOSAIC_TIME_MIN_S")), 10.0, 1e-6);
+  EXPECT_NEAR(std::atof(ds->GetMetadataItem("IRMOSAIC_TIME_MAX_S")), 10.04, 1e-6);
+  EXPECT_NEAR(std::atof(ds->GetMetadataItem("IRMOSAIC_GSD_M")), kGsd, 1e-12);
+  EXPECT_NEAR(std::atof(ds->GetMetadataItem("IRMOSAIC_ORIGIN_LAT_DEG")), kLat0, 1e-9);
+  EXPECT_NEAR(std::atof(ds->GetMetadataItem("IRMOSAIC_ORIGIN_LON_DEG")), kLon0, 1e-9);
+  EXPECT_STREQ(ds->GetRasterBand(1)->GetDescription(), "mosaic");
+}
+
+TEST_F(GdalDriverTest, RefusesUpdateWithAClearMessage) {
+  GdalErrors errors;
+  auto ds = OpenWith(dir_, "IRMOSAIC", /*update=*/true);
+  EXPECT_FALSE(ds);
+  EXPECT_NE(errors.last.find("read-only"), std::string::npos) << errors.last;
+}
+
+TEST_F(GdalDriverTest, IdentifyIgnoresOtherFilesQuietly) {
+  GdalErrors errors;
+  GDALRegister_IRMOSAIC();
+  GDALOpenInfo tile((dir_ / "tiles/0/0_0.tif").c_str(), GA_ReadOnly);
+  GDALOpenInfo parent(dir_.parent_path().c_str(), GA_ReadOnly);
+  GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("IRMOSAIC");
+  ASSERT_NE(driver, nullptr);
+  EXPECT_FALSE(driver->pfnIdentify(&tile));
+  EXPECT_FALSE(driver->pfnIdentify(&parent));
+  GDALOpenInfo store(dir_.c_str(), GA_ReadOnly);
+  EXPECT_TRUE(driver->pfnIdentify(&store));
+  EXPECT_EQ(errors.count, 0);
+}
+
+TEST_F(GdalDriverTest, ReopenAfterAPublishShowsTheLargerExtentAndTheNewGeneration) {
+  auto before = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(before);
+  const int width = before->GetRasterXSize(), height = before->GetRasterYSize();
+  PaintSquare(store_.get(), {800, -700}, 100, 3000);  // East (tile col 3) and north (row -3).
+  store_->PutFrameRecord(Frame(2, 10.08));
+  store_->WaitPublished(store_->RequestPublish());
+  auto after = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(after);
+  EXPECT_EQ(after->GetRasterXSize(), width + 512);   // Cols -1..3.
+  EXPECT_EQ(after->GetRasterYSize(), height + 512);  // Rows -3..1.
+  EXPECT_STREQ(after->GetMetadataItem("IRMOSAIC_GENERATION"), "2");
+  EXPECT_STREQ(after->GetMetadataItem("IRMOSAIC_FRAME_COUNT"), "3");
+  uint16_t value = 0;
+  // Mosaic pixel (800, -700) is at dataset (800 + 256, -700 + 768).
+  ASSERT_EQ(after->GetRasterBand(1)->RasterIO(GF_Read, 1056, 68, 1, 1, &value, 1, 1, GDT_UInt16, 0,
+                                              0, nullptr),
+            CE_None);
+  EXPECT_EQ(value, 3000);
+  // The dataset opened before keeps reading its own extent without error.
+  GdalErrors errors;
+  EXPECT_NE(Checksum(before->GetRasterBand(1)), 0);
+  EXPECT_EQ(errors.count, 0) << errors.last;
+}
+
+// Malformed manifests: each is refused with a message, never a crash or a read outside.
+class MalformedManifestTest : public GdalDriverTest {
+ protected:
+  void SetUp() override {
+    GdalDriverTest::SetUp();
+    std::ifstream in(dir_ / "manifest.json");
+    original_ = nlohmann::json::parse(in);
+  }
+  // The manifest as published (each case edits a fresh copy).
+  nlohmann::json Manifest() const { return original_; }
+  nlohmann::json original_;
+  void Write(const std::string& text) {
+    std::ofstream out(dir_ / "manifest.json", std::ios::trunc);
+    out << text;
+  }
+  // Opens through the driver; returns the error message (empty if it opened).
+  std::string Refusal() {
+    GdalErrors errors;
+    auto ds = OpenWith(dir_, "IRMOSAIC");
+    if (ds) return "";
+    return errors.last.empty() ? "(not recognised)" : errors.last;
+  }
+};
+
+TEST_F(MalformedManifestTest, Truncated) {
+  std::ifstream in(dir_ / "manifest.json");
+  const std::string text((std::istreambuf_iterator<char>(in)), {});
+  for (size_t cut : {size_t{0}, size_t{1}, text.size() / 3, text.size() / 2, text.size() - 3}) {
+    Write(text.substr(0, cut));
+    const std::string message = Refusal();
+    EXPECT_NE(message, "") << "cut at " << cut;
+    if (cut > 0) {
+      EXPECT_NE(message.find("IRMOSAIC"), std::string::npos) << message;
+    }
+  }
+}
+
+TEST_F(MalformedManifestTest, WrongTypes) {
+  for (const char* key : {"tile_size", "gsd_m", "levels", "crs_wkt", "generation", "data_type"}) {
+    nlohmann::json j = Manifest();
+    j[key] = nlohmann::json::object({{"x", 1}});
+    Write(j.dump());
+    EXPECT_NE(Refusal().find(key), std::string::npos) << key;
+  }
+  nlohmann::json j = Manifest();
+  j["levels"][0]["tiles"][0] = "0_0";
+  Write(j.dump());
+  EXPECT_NE(Refusal().find("[row, col]"), std::string::npos);
+  j = Manifest();
+  j["tile_size"] = 256.5;
+  Write(j.dump());
+  EXPECT_NE(Refusal().find("tile_size"), std::string::npos);
+}
+
+TEST_F(MalformedManifestTest, AbsurdSizesAndCounts) {
+  const auto refused_for = [&](const std::function<void(nlohmann::json&)>& edit) {
+    nlohmann::json j = Manifest();
+    edit(j);
+    Write(j.dump());
+    return Refusal();
+  };
+  EXPECT_NE(refused_for([](auto& j) { j["tile_size"] = 1 << 30; }), "");
+  EXPECT_NE(refused_for([](auto& j) { j["tile_size"] = -256; }), "");
+  EXPECT_NE(refused_for([](auto& j) { j["gsd_m"] = -0.5; }), "");
+  EXPECT_NE(refused_for([](auto& j) { j["format_version"] = 2; }).find("newer"), std::string::npos);
+  EXPECT_NE(refused_for([](auto& j) {
+              j["levels"][0]["tiles"].push_back({0, 1000000000000LL});
+            }),
+            "");
+  EXPECT_NE(refused_for([](auto& j) {
+              j["levels"][0]["tiles"].push_back({0, 18446744073709551615ULL});
+            }),
+            "");
+  // Tiles of 8192 two million tiles apart: a raster beyond GDAL's int size.
+  EXPECT_NE(refused_for([](auto& j) {
+              j["tile_size"] = 8192;
+              j["levels"][0]["tiles"].push_back({0, 1000000});
+              j["levels"][0]["tiles"].push_back({0, -1000000});
+              j["bounds_px"] = nullptr;
+            }).find("beyond"),
+            std::string::npos);
+  EXPECT_NE(refused_for([](auto& j) {
+              for (int l = 0; l < 100; ++l) j["levels"].push_back(j["levels"][0]);
+            }),
+            "");
+  EXPECT_NE(refused_for([](auto& j) { j["levels"] = nlohmann::json::array(); }), "");
+  EXPECT_NE(refused_for([](auto& j) { j["bounds_px"]["col_max"] = 1 << 30; }).find("bounds_px"),
+            std::string::npos);
+  // Deep nesting is refused before parsing.
+  Write("{\"a\": " + std::string(100000, '[') + std::string(100000, ']') + "}");
+  EXPECT_NE(Refusal().find("nests"), std::string::npos);
+}
+
+TEST_F(MalformedManifestTest, PathsAndLevelsOutsideTheStore) {
+  nlohmann::json j = Manifest();
+  j["levels"][0]["path_pattern"] = "../../etc/passwd";
+  Write(j.dump());
+  EXPECT_NE(Refusal().find("path_pattern"), std::string::npos);
+  j = Manifest();
+  j["levels"][0]["level"] = -1;
+  Write(j.dump());
+  EXPECT_NE(Refusal().find("level"), std::string::npos);
+  j = Manifest();
+  j["levels"][1]["level"] = 7;
+  Write(j.dump());
+  EXPECT_NE(Refusal(), "");
+}
+
+TEST_F(MalformedManifestTest, SymlinkedTileOutOfTheStoreIsNotRead) {
+  // A valid GeoTIFF outside the store, linked in place of a tile: opening works, reading the
+  // tile fails with a message and returns no byte of it.
+  const fs::path outside = dir_.parent_path() / "outside.tif";
+  fs::copy_file(dir_ / "tiles/0/0_0.tif", outside);
+  fs::remove(dir_ / "tiles/0/0_0.tif");
+  fs::create_symlink(outside, dir_ / "tiles/0/0_0.tif");
+  auto ds = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(ds);
+  GdalErrors errors;
+  uint16_t value = 0;
+  EXPECT_EQ(ds->GetRasterBand(1)->RasterIO(GF_Read, 256, 256, 1, 1, &value, 1, 1, GDT_UInt16, 0, 0,
+                                           nullptr),
+            CE_Failure);
+  EXPECT_NE(errors.last.find("outside the store"), std::string::npos) << errors.last;
+  EXPECT_EQ(value, 0);
+  // The store folder itself behind a symlink is fine: containment is checked after resolving.
+  const fs::path link = dir_.parent_path() / "link.irmosaic";
+  fs::remove(dir_ / "tiles/0/0_0.tif");
+  fs::copy_file(outside, dir_ / "tiles/0/0_0.tif");
+  fs::create_directory_symlink(dir_, link);
+  auto via_link = OpenWith(link, "IRMOSAIC");
+  ASSERT_TRUE(via_link);
+  EXPECT_NE(Checksum(via_link->GetRasterBand(1)), 0);
+}
+
+TEST_F(MalformedManifestTest, FuzzEntryPointsRefuseWithoutThrowing) {
+  EXPECT_EQ(IrmosaicDriverOpenForFuzzing(dir_.c_str()), 0);
+  EXPECT_EQ(IrmosaicDriverOpenForFuzzing((dir_ / "nothing").c_str()), -1);
+  const std::string bad = "{\"format\": \"irmosaic-store\", \"levels\": [[[";
+  EXPECT_EQ(IrmosaicParseManifestForFuzzing(bad.data(), bad.size()), -1);
+  std::ifstream in(dir_ / "manifest.json");
+  const std::string good((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_EQ(IrmosaicParseManifestForFuzzing(good.data(), good.size()), 0);
+}
+
+// Real clients: GDAL's own programs load gdal_IRMOSAIC.so through GDAL_DRIVER_PATH.
+std::string RunTool(const std::string& command, int* status) {
+  const std::string full = "GDAL_DRIVER_PATH='" IRMOSAIC_GDAL_PLUGIN_DIR "' " + command + " 2>&1";
+  FILE* pipe = ::popen(full.c_str(), "r");
+  std::string out;
+  if (pipe == nullptr) return out;
+  char buffer[4096];
+  size_t got = 0;
+  while ((got = std::fread(buffer, 1, sizeof(buffer), pipe)) > 0) out.append(buffer, got);
+  *status = ::pclose(pipe);
+  return out;
+}
+
+TEST_F(GdalDriverTest, GdalToolsLoadThePlugInAndAgreeWithMosaicVrt) {
+  int status = -1;
+  const std::string formats = RunTool("gdalinfo --formats", &status);
+  ASSERT_EQ(status, 0) << formats;
+  EXPECT_NE(formats.find("IRMOSAIC -raster- (ro"), std::string::npos) << formats;
+
+  const std::string ours_text =
+      RunTool("gdalinfo -json -checksum '" + dir_.string() + "'", &status);
+  ASSERT_EQ(status, 0) << ours_text;
+  const std::string vrt_text =
+      RunTool("gdalinfo -json -checksum '" + (dir_ / "mosaic.vrt").string() + "'", &status);
+  ASSERT_EQ(status, 0) << vrt_text;
+  const nlohmann::json ours = nlohmann::json::parse(ours_text, nullptr, false);
+  const nlohmann::json vrt = nlohmann::json::parse(vrt_text, nullptr, false);
+  ASSERT_FALSE(ours.is_discarded()) << ours_text;
+  ASSERT_FALSE(vrt.is_discarded()) << vrt_text;
+  EXPECT_EQ(ours["driverShortName"], "IRMOSAIC");
+  EXPECT_EQ(ours["size"], vrt["size"]);
+  EXPECT_EQ(ours["size"][0], 768);
+  for (int i = 0; i < 6; ++i) {
+    EXPECT_NEAR(ours["geoTransform"][i].get<double>(), vrt["geoTransform"][i].get<double>(), 1e-9);
+  }
+  EXPECT_EQ(ours["coordinateSystem"]["wkt"], vrt["coordinateSystem"]["wkt"]);
+  for (int b = 0; b < 2; ++b) {
+    EXPECT_EQ(ours["bands"][b]["checksum"], vrt["bands"][b]["checksum"]) << b;
+    EXPECT_EQ(ours["bands"][b]["overviews"], vrt["bands"][b]["overviews"]) << b;  // With sums.
+  }
+  EXPECT_GE(ours["bands"][0]["overviews"].size(), 1u);
+  EXPECT_EQ(ours["metadata"][""]["IRMOSAIC_GENERATION"], "1");
+
+  const fs::path tif = dir_.parent_path() / "copy.tif";
+  const std::string translate = RunTool(
+      "gdal_translate -q -of GTiff '" + dir_.string() + "' '" + tif.string() + "'", &status);
+  ASSERT_EQ(status, 0) << translate;
+  auto copy = OpenWith(tif, "GTiff");
+  auto vrt_ds = OpenWith(dir_ / "mosaic.vrt", "VRT");
+  ASSERT_TRUE(copy);
+  ASSERT_TRUE(vrt_ds);
+  EXPECT_EQ(Checksum(copy->GetRasterBand(1)), Checksum(vrt_ds->GetRasterBand(1)));
+  EXPECT_EQ(copy->GetRasterBand(2)->GetColorInterpretation(), GCI_AlphaBand);
+}
+
+}  // namespace
+}  // namespace irmosaic
