@@ -208,3 +208,15 @@ def test_bad_options(tmp_path, flight):
     pos = irmosaic.PosTrack.load_csv(str(flight / "pos.csv"))
     with pytest.raises(irmosaic.InputError):
         irmosaic.Mosaicker(options, camera, pos)
+
+
+def test_unwritable_store_raises_output_error(flight):
+    camera = irmosaic.CameraModel.load_json(str(flight / "camera.json"))
+    pos = irmosaic.PosTrack.load_csv(str(flight / "pos.csv"))
+    # /proc refuses new folders even to root; the store opens at the first placed frame.
+    m = irmosaic.Mosaicker(irmosaic.MosaickerOptions("/proc/irmosaic/s.irmosaic"), camera, pos)
+    index, time_s, image = read_frames(flight)[0]
+    with pytest.raises(irmosaic.OutputError) as info:
+        m.push(index, time_s, image)
+    assert isinstance(info.value, OSError)
+    assert "/proc/irmosaic" in str(info.value)
