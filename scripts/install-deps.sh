@@ -9,7 +9,7 @@ packages=(
   libgdal-dev gdal-bin python3-gdal libproj-dev proj-bin
   libgeographiclib-dev libopencv-dev libeigen3-dev libceres-dev
   libgtest-dev libgmock-dev nlohmann-json3-dev
-  python3-numpy python3-matplotlib
+  python3-numpy python3-matplotlib pybind11-dev python3-pytest
 )
 if [[ "${1:-}" == "--with-qgis" || "${IRMOSAIC_WITH_QGIS:-0}" == "1" ]]; then
   packages+=(python3-qgis qgis-providers)
