@@ -602,6 +602,8 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
       {"tile_size -256", damaged([](nlohmann::json* j) { (*j)["tile_size"] = -256; })},
       {"tile_size 1e30", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 1e30; })},
       {"tile_size 100", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 100; })},
+      {"format_version 2 (a newer program)",
+       damaged([](nlohmann::json* j) { (*j)["format_version"] = 2; })},
       {"gsd_m 0", damaged([](nlohmann::json* j) { (*j)["gsd_m"] = 0.0; })},
       {"generation text", damaged([](nlohmann::json* j) { (*j)["generation"] = "x"; })},
       {"format number", damaged([](nlohmann::json* j) { (*j)["format"] = 5; })},
@@ -637,7 +639,8 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
   }
   // The undamaged manifest still opens.
   std::ofstream(dir / "manifest.json", std::ios::trunc) << good.dump();
-  EXPECT_EQ(TileStore::OpenReadOnly(dir.string())->published_generation(), 0);
+  EXPECT_EQ(TileStore::OpenReadOnly(dir.string())->published_generation(),
+            good["generation"].get<int64_t>());
 }
 
 }  // namespace
