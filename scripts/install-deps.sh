@@ -10,6 +10,7 @@ packages=(
   libgeographiclib-dev libopencv-dev libeigen3-dev libceres-dev
   libgtest-dev libgmock-dev nlohmann-json3-dev
   python3-numpy python3-matplotlib pybind11-dev python3-pytest
+  clang libclang-rt-14-dev  # scripts/fuzz.sh: clang++ with libFuzzer and the sanitizers
 )
 if [[ "${1:-}" == "--with-qgis" || "${IRMOSAIC_WITH_QGIS:-0}" == "1" ]]; then
   packages+=(python3-qgis qgis-providers)

@@ -74,6 +74,10 @@ CameraModel CameraModel::LoadJson(const std::string& path) {
     throw InputError({path, 0, 0, ""},
                      "not valid JSON (byte " + std::to_string(e.byte) + "): " + e.what(),
                      "fix the JSON syntax");
+  } catch (const json::exception& e) {
+    // E.g. out_of_range for a number beyond double ("555e555"), found by the fuzzer.
+    throw InputError({path, 0, 0, ""}, std::string("not valid JSON: ") + e.what(),
+                     "fix the JSON (numbers must fit a double)");
   }
   if (!doc.is_object()) {
     throw InputError({path, 0, 0, ""}, "the camera file is not a JSON object",

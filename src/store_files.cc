@@ -330,6 +330,72 @@ std::string ManifestToJson(const Manifest& manifest) {
   return j.dump(1) + "\n";
 }
 
+namespace {
+
+// A JSON number that must be whole: a float such as 1e30 would overflow a plain get<int64_t>().
+int64_t WholeNumber(const nlohmann::json& value, const char* field, const fs::path& path) {
+  if (value.is_number_integer()) return value.get<int64_t>();
+  if (value.is_number_float()) {
+    const double x = value.get<double>();
+    constexpr double kLimit = 9.0e15;  // Below 2^53: every whole double here is exact.
+    if (std::isfinite(x) && x == std::floor(x) && std::abs(x) < kLimit) {
+      return static_cast<int64_t>(x);
+    }
+  }
+  throw InputError({path.string(), 0, 0, field}, "'" + value.dump() + "' is not a whole number",
+                   "restore the store or start a new one (--overwrite)");
+}
+
+int64_t InRange(int64_t value, int64_t lo, int64_t hi, const char* field, const fs::path& path) {
+  if (value < lo || value > hi) {
+    throw InputError({path.string(), 0, 0, field},
+                     std::string(field) + " " + std::to_string(value) + " is not in [" +
+                         std::to_string(lo) + ", " + std::to_string(hi) + "]",
+                     "restore the store or start a new one (--overwrite)");
+  }
+  return value;
+}
+
+// The values every reader divides by, shifts by or allocates from: a manifest edited by hand or
+// damaged on disk must be refused here rather than crash a later read (found by the fuzzer).
+void CheckManifestRanges(const Manifest& m, const fs::path& path) {
+  auto refuse = [&](const char* field, const std::string& problem) {
+    throw InputError({path.string(), 0, 0, field}, problem,
+                     "restore the store or start a new one (--overwrite)");
+  };
+  if (m.tile_size < 16 || m.tile_size > 8192 || m.tile_size % 16 != 0) {
+    refuse("tile_size",
+           "tile_size " + std::to_string(m.tile_size) + " is not a multiple of 16 in [16, 8192]");
+  }
+  if (m.block_size < 16 || m.block_size > 8192) {
+    refuse("block_size", "block_size " + std::to_string(m.block_size) + " is not in [16, 8192]");
+  }
+  if (!std::isfinite(m.georef.gsd_m) || !(m.georef.gsd_m > 0.0)) {
+    refuse("gsd_m", "gsd_m must be a positive number of metres");
+  }
+  if (!(std::abs(m.georef.origin_lat_deg) <= 90.0) ||
+      !(std::abs(m.georef.origin_lon_deg) <= 360.0)) {
+    refuse("origin", "the origin is not a latitude/longitude in degrees");
+  }
+  if (m.generation < 0) refuse("generation", "generation is negative");
+  if (m.levels.size() > 17) {  // Level 0 and at most 16 overview levels (TileStoreOptions).
+    refuse("levels", std::to_string(m.levels.size()) + " levels; at most 17 are possible");
+  }
+  // Tile indices times the tile size must stay within int64 pixel arithmetic.
+  constexpr int64_t kMaxTileIndex = int64_t{1} << 40;
+  for (const TileSet& level : m.levels) {
+    for (const TileIndex& tile : level) {
+      if (tile.first < -kMaxTileIndex || tile.first > kMaxTileIndex ||
+          tile.second < -kMaxTileIndex || tile.second > kMaxTileIndex) {
+        refuse("levels", "tile index [" + std::to_string(tile.first) + ", " +
+                             std::to_string(tile.second) + "] is out of range");
+      }
+    }
+  }
+}
+
+}  // namespace
+
 Manifest ReadManifest(const fs::path& path) {
   std::ifstream in(path);
   if (!in) {
@@ -344,31 +410,41 @@ Manifest ReadManifest(const fs::path& path) {
                      std::string("manifest is not valid JSON: ") + e.what(),
                      "restore the store or start a new one (--overwrite)");
   }
-  if (j.value("format", "") != kFormatName) {
-    throw InputError({path.string(), 0, 0, "format"}, "not an irmosaic store manifest",
+  if (!j.is_object()) {
+    throw InputError({path.string(), 0, 0, ""}, "manifest is not a JSON object",
                      "give the folder of an irmosaic store");
   }
-  if (j.value("format_version", 0) > kFormatVersion) {
-    throw InputError({path.string(), 0, 0, "format_version"},
-                     "store format version " + std::to_string(j.value("format_version", 0)) +
-                         " is newer than this program's " + std::to_string(kFormatVersion),
-                     "use a newer irmosaic");
-  }
   try {
+    if (j.value("format", "") != kFormatName) {
+      throw InputError({path.string(), 0, 0, "format"}, "not an irmosaic store manifest",
+                       "give the folder of an irmosaic store");
+    }
+    const int64_t format_version =
+        j.contains("format_version") ? WholeNumber(j["format_version"], "format_version", path) : 0;
+    if (format_version > kFormatVersion) {
+      throw InputError({path.string(), 0, 0, "format_version"},
+                       "store format version " + std::to_string(format_version) +
+                           " is newer than this program's " + std::to_string(kFormatVersion),
+                       "use a newer irmosaic");
+    }
     Manifest m;
-    m.generation = j.at("generation").get<int64_t>();
+    m.generation = WholeNumber(j.at("generation"), "generation", path);
     m.created_utc = j.value("created_utc", "");
     m.published_utc = j.value("published_utc", "");
     m.georef.crs_wkt = j.at("crs_wkt").get<std::string>();
     m.georef.origin_lat_deg = j.at("origin").at("lat_deg").get<double>();
     m.georef.origin_lon_deg = j.at("origin").at("lon_deg").get<double>();
     m.georef.gsd_m = j.at("gsd_m").get<double>();
-    m.tile_size = j.at("tile_size").get<int>();
-    m.block_size = j.value("block_size", kBlockSize);
+    m.tile_size = static_cast<int>(
+        InRange(WholeNumber(j.at("tile_size"), "tile_size", path), 16, 8192, "tile_size", path));
+    m.block_size = j.contains("block_size")
+                       ? static_cast<int>(InRange(WholeNumber(j["block_size"], "block_size", path),
+                                                  16, 8192, "block_size", path))
+                       : kBlockSize;
     m.type = PixelTypeFromName(j.at("data_type").get<std::string>());
     m.compression = j.value("compression", "ZSTD");
     const auto& frames = j.at("frames");
-    m.frame_count = frames.value("count", int64_t{0});
+    m.frame_count = frames.contains("count") ? WholeNumber(frames["count"], "count", path) : 0;
     m.time_min_s = frames.value("time_min_s", 0.0);
     m.time_max_s = frames.value("time_max_s", 0.0);
     m.overview_vrts = j.value("overview_vrts", std::vector<std::string>{});
@@ -379,14 +455,18 @@ Manifest ReadManifest(const fs::path& path) {
     for (const auto& level : j.at("levels")) {
       TileSet tiles;
       for (const auto& tile : level.at("tiles")) {
-        tiles.insert({tile.at(0).get<int64_t>(), tile.at(1).get<int64_t>()});
+        tiles.insert(
+            {WholeNumber(tile.at(0), "levels", path), WholeNumber(tile.at(1), "levels", path)});
       }
       m.levels.push_back(std::move(tiles));
     }
     if (j.contains("application") && !j["application"].is_null()) {
       m.application_json = j["application"].dump();
     }
+    CheckManifestRanges(m, path);
     return m;
+  } catch (const InputError&) {
+    throw;
   } catch (const std::exception& e) {
     throw InputError({path.string(), 0, 0, ""}, std::string("manifest is incomplete: ") + e.what(),
                      "restore the store or start a new one (--overwrite)");

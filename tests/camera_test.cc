@@ -43,6 +43,8 @@ TEST(CameraTest, BadFieldsAreNamed) {
        "'lever_arm_m'"},
       {R"({"width": 640, "height": )", "not valid JSON"},
       {R"([1, 2, 3])", "not a JSON object"},
+      // A number beyond double threw nlohmann's out_of_range past LoadJson (found by fuzzing).
+      {R"({"width": 555e555, "height": 512, "fx": 2400, "fy": 2400})", "not valid JSON"},
   };
   for (const auto& [text, expected] : cases) {
     const std::string message = ErrorOf(text);

@@ -16,6 +16,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -573,6 +574,73 @@ TEST(TileStoreTest, KillNineMidPublishLeavesALoadableStoreThatResumes) {
   for (const auto& entry : fs::recursive_directory_iterator(dir)) {
     EXPECT_EQ(entry.path().filename().string().find(".tmp"), std::string::npos) << entry.path();
   }
+}
+
+}  // namespace
+}  // namespace irmosaic
+
+namespace irmosaic {
+namespace {
+
+// Found by fuzz/store_manifest_fuzzer: a damaged manifest (tile_size 0, a JSON string, a float
+// too large for an integer, a field of the wrong type) crashed the reader (division by zero,
+// uncaught nlohmann::type_error, undefined float-to-int conversion). Each must be an InputError
+// naming manifest.json, for read-only opens and resumes alike.
+TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
+  const fs::path dir = FreshDir("damaged_manifest");
+  TileStore::Open(Options(dir), Georef())->Close();
+  std::ifstream in(dir / "manifest.json");
+  const nlohmann::json good = nlohmann::json::parse(in);
+  in.close();
+  auto damaged = [&](const std::function<void(nlohmann::json*)>& edit) {
+    nlohmann::json j = good;
+    edit(&j);
+    return j.dump();
+  };
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"tile_size 0", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 0; })},
+      {"tile_size -256", damaged([](nlohmann::json* j) { (*j)["tile_size"] = -256; })},
+      {"tile_size 1e30", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 1e30; })},
+      {"tile_size 100", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 100; })},
+      {"format_version 2 (a newer program)",
+       damaged([](nlohmann::json* j) { (*j)["format_version"] = 2; })},
+      {"gsd_m 0", damaged([](nlohmann::json* j) { (*j)["gsd_m"] = 0.0; })},
+      {"generation text", damaged([](nlohmann::json* j) { (*j)["generation"] = "x"; })},
+      {"format number", damaged([](nlohmann::json* j) { (*j)["format"] = 5; })},
+      {"format_version 1e300", damaged([](nlohmann::json* j) { (*j)["format_version"] = 1e300; })},
+      {"tile index 1e300", damaged([](nlohmann::json* j) {
+         (*j)["levels"][0]["tiles"] = {{1e300, 0}};
+       })},
+      {"tile index 2^62", damaged([](nlohmann::json* j) {
+         (*j)["levels"][0]["tiles"] = {{int64_t{1} << 62, 0}};
+       })},
+      {"a JSON string", "\"irmosaic-store\""},
+      {"a JSON array", "[1, 2]"},
+  };
+  for (const auto& [name, text] : cases) {
+    std::ofstream(dir / "manifest.json", std::ios::trunc) << text;
+    try {
+      auto reader = TileStore::OpenReadOnly(dir.string());
+      cv::Mat image, coverage;
+      reader->ReadWindow(cv::Rect(0, 0, 8, 8), &image, &coverage);
+      ADD_FAILURE() << name << ": accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("manifest.json"), std::string::npos) << name;
+    }
+    EXPECT_THROW(TileStore::Open(
+                     [&] {
+                       TileStoreOptions options = Options(dir);
+                       options.mode = TileStoreOptions::Mode::kResume;
+                       return options;
+                     }(),
+                     Georef()),
+                 InputError)
+        << name;
+  }
+  // The undamaged manifest still opens.
+  std::ofstream(dir / "manifest.json", std::ios::trunc) << good.dump();
+  EXPECT_EQ(TileStore::OpenReadOnly(dir.string())->published_generation(),
+            good["generation"].get<int64_t>());
 }
 
 }  // namespace
