@@ -24,7 +24,8 @@ json ReadJsonFile(const std::string& path) {
     return json::parse(in);
   } catch (const json::parse_error& e) {
     throw InputError({path, 0, 0, ""}, std::string("not valid JSON: ") + e.what(),
-                     "fix the JSON syntax");  } catch (const json::exception& e) {
+                     "fix the JSON syntax");
+  } catch (const json::exception& e) {
     // E.g. out_of_range for a number beyond double range ("1e999").
     throw InputError({path, 0, 0, ""}, std::string("not valid JSON: ") + e.what(),
                      "fix the JSON (numbers must fit a double)");

@@ -233,7 +233,8 @@ SynthOptions SynthOptions::FromJson(const std::string& json_text, const std::str
     doc = json::parse(json_text);
   } catch (const json::parse_error& e) {
     throw InputError({source, 0, 0, ""}, std::string("not valid JSON: ") + e.what(),
-                     "fix the JSON syntax");  } catch (const json::exception& e) {
+                     "fix the JSON syntax");
+  } catch (const json::exception& e) {
     // E.g. out_of_range for a number beyond double range ("1e999").
     throw InputError({source, 0, 0, ""}, std::string("not valid JSON: ") + e.what(),
                      "fix the JSON (numbers must fit a double)");

@@ -224,7 +224,8 @@ namespace {
 TEST(EvaluatorInput, NumberBeyondDoubleIsAnInputErrorNotACrash) {
   const auto path = std::filesystem::temp_directory_path() /
                     ("irmosaic_eval_huge_" + std::to_string(::getpid()) + ".json");
-  std::ofstream(path) << R"({"origin": {"lat_deg": 1e999, "lon_deg": 8}, "gsd_m": 0.5, "frames": []})";
+  std::ofstream(path)
+      << R"({"origin": {"lat_deg": 1e999, "lon_deg": 8}, "gsd_m": 0.5, "frames": []})";
   EXPECT_THROW(Placements::LoadJson(path.string()), InputError);
   EXPECT_THROW(SynthOptions::FromJson(R"({"seed": 1e999})", "flight.json"), InputError);
   std::filesystem::remove(path);
