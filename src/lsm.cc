@@ -358,6 +358,18 @@ Eigen::VectorXd SolveNormal(const Eigen::MatrixXd& normal, const Eigen::VectorXd
   return delta;
 }
 
+// One iteration's convergence bookkeeping, shared by both solvers: translation first, then
+// (with estimate_affine) the full affine; converged when the update moves the patch corners
+// less than convergence_px in the full stage. Updates *full; returns true when converged.
+bool Settle(const LsmOptions& o, double corner_motion_px, int iteration, bool* full) {
+  if (corner_motion_px < o.convergence_px) {
+    if (*full || !o.estimate_affine) return true;
+    *full = true;  // Translation settled: release the affine.
+  }
+  if (iteration >= o.translation_only_iterations && o.estimate_affine) *full = true;
+  return false;
+}
+
 }  // namespace
 
 bool LsmMatcher::ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p,
@@ -450,18 +462,10 @@ LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const
     c = c - m * d;
     if (unknowns == 7) gain += delta(6);
     if (CheckDivergence(options_, c0, c, m0, m, gain, &result)) return result;
-    if (CornerMotion(d, lin, r) < options_.convergence_px) {
-      if (full) {
-        result.status = LsmResult::Status::kConverged;
-        break;
-      }
-      if (!options_.estimate_affine) {
-        result.status = LsmResult::Status::kConverged;
-        break;
-      }
-      full = true;  // Translation settled: release the affine.
+    if (Settle(options_, CornerMotion(d, lin, r), it, &full)) {
+      result.status = LsmResult::Status::kConverged;
+      break;
     }
-    if (it >= options_.translation_only_iterations && options_.estimate_affine) full = true;
   }
   result.position_in_base = c;
   result.base_from_template_linear = m;
@@ -560,18 +564,10 @@ LsmResult LsmMatcher::MatchTraditional(const cv::Mat& base, const cv::Mat& templ
     if (unknowns == 8) h1 += delta(6);
     h0 += delta(unknowns - 1);
     if (CheckDivergence(options_, c0, c, m0, m, 1.0 / h1, &result)) return result;
-    if (CornerMotion(d, lin, r) < options_.convergence_px) {
-      if (full) {
-        result.status = LsmResult::Status::kConverged;
-        break;
-      }
-      if (!options_.estimate_affine) {
-        result.status = LsmResult::Status::kConverged;
-        break;
-      }
-      full = true;  // Translation settled: release the affine.
+    if (Settle(options_, CornerMotion(d, lin, r), it, &full)) {
+      result.status = LsmResult::Status::kConverged;
+      break;
     }
-    if (it >= options_.translation_only_iterations && options_.estimate_affine) full = true;
   }
   result.position_in_base = c;
   result.base_from_template_linear = m;
