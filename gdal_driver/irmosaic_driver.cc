@@ -153,10 +153,21 @@ bool GetString(const nlohmann::json& j, const char* key, size_t max_bytes, std::
   return true;
 }
 
+bool ValidWkt(const std::string& wkt, std::string* error) {
+  OGRSpatialReference srs;
+  if (srs.importFromWkt(wkt.c_str()) != OGRERR_NONE) {
+    *error = "field \"crs_wkt\" is not a valid WKT CRS";
+    return false;
+  }
+  return true;
+}
+
 // Validates manifest text into *index (all but `root`). Returns false with *error on refusal,
 // and sets *not_a_store when the JSON is valid but is some other format (then Open stays quiet).
+// A store with no level-0 tile yet is refused unless `allow_empty` (its footprints layer alone
+// is then of use; index->levels[0] stays empty).
 bool ParseManifest(const char* text, size_t size, StoreIndex* index, std::string* error,
-                   bool* not_a_store) {
+                   bool* not_a_store, bool allow_empty = false) {
   *not_a_store = false;
   if (JsonDepth(text, size) > kMaxJsonDepth) {
     *error = "manifest nests deeper than " + std::to_string(kMaxJsonDepth) + " levels";
@@ -306,8 +317,11 @@ bool ParseManifest(const char* text, size_t size, StoreIndex* index, std::string
     }
   }
   if (index->levels[0].empty()) {
-    *error = "the store holds no tiles yet (nothing published)";
-    return false;
+    if (!allow_empty) {
+      *error = "the store holds no tiles yet (nothing published)";
+      return false;
+    }
+    return ValidWkt(index->crs_wkt, error);
   }
   index->row0 = index->col0 = INT64_MAX;
   index->row1 = index->col1 = INT64_MIN;
@@ -351,12 +365,7 @@ bool ParseManifest(const char* text, size_t size, StoreIndex* index, std::string
          index->tile_size % (1 << index->usable_levels) == 0) {
     ++index->usable_levels;
   }
-  OGRSpatialReference srs;
-  if (srs.importFromWkt(index->crs_wkt.c_str()) != OGRERR_NONE) {
-    *error = "field \"crs_wkt\" is not a valid WKT CRS";
-    return false;
-  }
-  return true;
+  return ValidWkt(index->crs_wkt, error);
 }
 
 // Reads a whole file of at most kMaxManifestBytes through VSI.
@@ -433,19 +442,22 @@ class IrmosaicBand final : public GDALRasterBand {
   GDALRasterBand* GetOverview(int i) override;
 };
 
-// One level of the store as a dataset; level 0 owns the overview levels.
+// One level of the store as a dataset; level 0 owns the overview levels and, when asked for,
+// the footprints layer. Without `with_raster` (a vector-only open) it has no bands.
 class IrmosaicDataset final : public GDALDataset {
  public:
-  IrmosaicDataset(std::shared_ptr<const StoreIndex> index, int level) : index_(std::move(index)) {
+  IrmosaicDataset(std::shared_ptr<const StoreIndex> index, int level, bool with_raster = true)
+      : index_(std::move(index)) {
     level_ = level;
+    eAccess = GA_ReadOnly;
+    srs_.importFromWkt(index_->crs_wkt.c_str());
+    srs_.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+    if (!with_raster || index_->levels[0].empty()) return;
     const int64_t t_level = index_->tile_size >> level;  // Level-0 tile side at this level.
     col_offset_px_ = index_->col0 * t_level;
     row_offset_px_ = index_->row0 * t_level;
     nRasterXSize = static_cast<int>((index_->col1 - index_->col0) * t_level);
     nRasterYSize = static_cast<int>((index_->row1 - index_->row0) * t_level);
-    eAccess = GA_ReadOnly;
-    srs_.importFromWkt(index_->crs_wkt.c_str());
-    srs_.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
     for (int b = 1; b <= 2; ++b) SetBand(b, new IrmosaicBand(this, b));
     if (level == 0) {
       for (int l = 1; l < index_->usable_levels; ++l) {
@@ -455,6 +467,7 @@ class IrmosaicDataset final : public GDALDataset {
   }
 
   CPLErr GetGeoTransform(double* gt) override {
+    if (nBands == 0) return CE_Failure;
     const double scale = std::ldexp(1.0, level_);
     gt[0] = (static_cast<double>(index_->col0) * index_->tile_size - 0.5) * index_->gsd_m;
     gt[1] = index_->gsd_m * scale;
@@ -464,7 +477,38 @@ class IrmosaicDataset final : public GDALDataset {
     gt[5] = -index_->gsd_m * scale;
     return CE_None;
   }
-  const OGRSpatialReference* GetSpatialRef() const override { return &srs_; }
+  const OGRSpatialReference* GetSpatialRef() const override {
+    return nBands == 0 ? nullptr : &srs_;
+  }
+
+  // The footprints: layer "frames" of the store's frames.gpkg, served by GDAL's GPKG driver.
+  int GetLayerCount() override { return frames_layer_ != nullptr ? 1 : 0; }
+  OGRLayer* GetLayer(int i) override { return i == 0 ? frames_layer_ : nullptr; }
+
+  // Opens frames.gpkg read-only (GPKG driver only, inside the store after resolving symlinks)
+  // and keeps its layer "frames"; false with *error if there is none to serve.
+  bool OpenFrames(std::string* error) {
+    const std::string path = index_->root + "/frames.gpkg";
+    const std::string real = RealPath(path);
+    if (real.empty() || real.compare(0, index_->root.size() + 1, index_->root + "/") != 0) {
+      *error = "frames.gpkg is missing or lies outside the store";
+      return false;
+    }
+    const char* const allowed[] = {"GPKG", nullptr};
+    frames_.reset(GDALDataset::Open(real.c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY, allowed,
+                                    nullptr, nullptr));
+    if (!frames_) {
+      *error = "frames.gpkg is not a GeoPackage GDAL can read";
+      return false;
+    }
+    frames_layer_ = frames_->GetLayerByName("frames");
+    if (frames_layer_ == nullptr) {
+      frames_.reset();
+      *error = "frames.gpkg has no layer \"frames\"";
+      return false;
+    }
+    return true;
+  }
 
   // Reads the window [x, x+w) x [y, y+h) of this level (dataset pixels) of `band` into `out`
   // (line stride `line_px` samples), leaving samples of absent tiles untouched.
@@ -532,6 +576,8 @@ class IrmosaicDataset final : public GDALDataset {
 
   int64_t col_offset_px_ = 0, row_offset_px_ = 0;
   OGRSpatialReference srs_;
+  GDALDatasetUniquePtr frames_;  // Owns frames_layer_.
+  OGRLayer* frames_layer_ = nullptr;
 };
 
 IrmosaicBand::IrmosaicBand(IrmosaicDataset* dataset, int band) {
@@ -590,18 +636,32 @@ GDALDataset* OpenStore(GDALOpenInfo* info) {
              manifest.c_str());
     return nullptr;
   }
+  // GDAL passes the kinds the caller accepts (gdalinfo: raster, ogrinfo: vector, GDALOpenEx
+  // with no kind: all). The raster needs tiles; the footprints layer alone does not.
+  const bool want_raster = (info->nOpenFlags & GDAL_OF_RASTER) != 0;
+  const bool want_vector = (info->nOpenFlags & GDAL_OF_VECTOR) != 0;
   std::string text, error;
   bool not_a_store = false;
   if (!ReadSmallFile(manifest, &text, &error) ||
-      !ParseManifest(text.data(), text.size(), index.get(), &error, &not_a_store)) {
+      !ParseManifest(text.data(), text.size(), index.get(), &error, &not_a_store,
+                     /*allow_empty=*/!want_raster)) {
     if (!not_a_store) {
       CPLError(CE_Failure, CPLE_OpenFailed, "IRMOSAIC: refusing %s: %s", manifest.c_str(),
                error.c_str());
     }
     return nullptr;
   }
-  auto dataset = std::make_unique<IrmosaicDataset>(index, 0);
+  auto dataset = std::make_unique<IrmosaicDataset>(index, 0, want_raster);
   dataset->SetDescription(info->pszFilename);
+  if (want_vector && !dataset->OpenFrames(&error)) {
+    // A raster client loses nothing; a vector-only client has nothing to read.
+    if (!want_raster) {
+      CPLError(CE_Failure, CPLE_OpenFailed, "IRMOSAIC: no footprints layer in %s: %s",
+               info->pszFilename, error.c_str());
+      return nullptr;
+    }
+    CPLDebug("IRMOSAIC", "no footprints layer: %s", error.c_str());
+  }
   const auto set = [&](const char* key, const std::string& value) {
     dataset->SetMetadataItem(key, value.c_str());
   };
@@ -650,6 +710,7 @@ extern "C" void GDALRegister_IRMOSAIC() {
   auto* driver = new GDALDriver();
   driver->SetDescription(irmosaic::kDriverName);
   driver->SetMetadataItem(GDAL_DCAP_RASTER, "YES");
+  driver->SetMetadataItem(GDAL_DCAP_VECTOR, "YES");
   driver->SetMetadataItem(GDAL_DMD_LONGNAME, "irmosaic live mosaic store (read-only)");
   driver->SetMetadataItem(GDAL_DMD_HELPTOPIC, "docs/store.md#gdal-plug-in");
   driver->SetMetadataItem(GDAL_DCAP_VIRTUALIO, "NO");

@@ -2,13 +2,14 @@
 # Builds the libFuzzer targets (fuzz/) with clang++, ASan and UBSan in build-fuzz/ and runs each
 # for SECONDS (default 30) from its seed corpus (fuzz/corpus/<target>/). Exits non-zero if a
 # target crashes, leaks, hangs or fails to build; the reproducer is left in build-fuzz/artifacts/.
-# Usage: scripts/fuzz.sh [SECONDS] [TARGET...]     (targets: pos_csv camera_json store_manifest)
+# Usage: scripts/fuzz.sh [SECONDS] [TARGET...]     (targets: pos_csv camera_json store_manifest
+#                                                  gdal_driver)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seconds="${1:-30}"
 shift || true
 targets=("$@")
-if ((${#targets[@]} == 0)); then targets=(pos_csv camera_json store_manifest); fi
+if ((${#targets[@]} == 0)); then targets=(pos_csv camera_json store_manifest gdal_driver); fi
 build="${IRMOSAIC_FUZZ_BUILD:-build-fuzz}"
 
 cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \

@@ -1,10 +1,12 @@
 // IRMOSAIC GDAL driver: registered in-process (geometry, values against mosaic.vrt, growth,
 // malformed manifests) and loaded as a plug-in by GDAL's own tools (gdalinfo, gdal_translate).
+#include <dlfcn.h>
 #include <gdal.h>
 #include <gdal_alg.h>
 #include <gdal_priv.h>
 #include <gtest/gtest.h>
 #include <ogr_spatialref.h>
+#include <ogrsf_frmts.h>
 #include <unistd.h>
 
 #include <cstdio>
@@ -79,13 +81,36 @@ struct GdalErrors {
   std::string last;
 };
 
-GDALDatasetUniquePtr OpenWith(const fs::path& path, const char* driver, bool update = false) {
-  GDALAllRegister();
+// Registers the driver compiled into this test before GDAL loads its plug-ins: a gdal_IRMOSAIC.so
+// installed in GDAL's plug-in folder (cmake --install) would otherwise register first and the
+// tests would exercise that copy, not this build's code. TileStore calls GDALAllRegister too,
+// so this must happen before any test runs (the environment below).
+void RegisterInProcess() {
   GDALRegister_IRMOSAIC();
+  GDALAllRegister();
+}
+
+class RegisterFirst : public ::testing::Environment {
+ public:
+  void SetUp() override { RegisterInProcess(); }
+};
+[[maybe_unused]] ::testing::Environment* const kRegisterFirst =
+    ::testing::AddGlobalTestEnvironment(new RegisterFirst);
+
+GDALDatasetUniquePtr OpenWith(const fs::path& path, const char* driver, bool update = false) {
+  RegisterInProcess();
   const char* const allowed[] = {driver, nullptr};
   return GDALDatasetUniquePtr(
       GDALDataset::Open(path.c_str(), GDAL_OF_RASTER | (update ? GDAL_OF_UPDATE : GDAL_OF_READONLY),
                         allowed, nullptr, nullptr));
+}
+
+// Opens `path` through IRMOSAIC asking for the given kinds (GDAL_OF_RASTER / GDAL_OF_VECTOR).
+GDALDatasetUniquePtr OpenKinds(const fs::path& path, unsigned kinds) {
+  RegisterInProcess();
+  const char* const allowed[] = {"IRMOSAIC", nullptr};
+  return GDALDatasetUniquePtr(
+      GDALDataset::Open(path.c_str(), kinds | GDAL_OF_READONLY, allowed, nullptr, nullptr));
 }
 
 int Checksum(GDALRasterBand* band) {
@@ -167,6 +192,16 @@ TEST_F(GdalDriverTest, OpensTheManifestPathAndTellsTheStoresMetadata) {
   EXPECT_STREQ(ds->GetRasterBand(1)->GetDescription(), "mosaic");
 }
 
+TEST_F(GdalDriverTest, TheDriverUnderTestIsThisBuildsNotAnInstalledPlugIn) {
+  RegisterInProcess();
+  GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("IRMOSAIC");
+  ASSERT_NE(driver, nullptr);
+  Dl_info where;
+  ASSERT_NE(::dladdr(reinterpret_cast<void*>(driver->pfnOpen), &where), 0);
+  EXPECT_EQ(std::string(where.dli_fname).find("gdal_IRMOSAIC"), std::string::npos)
+      << where.dli_fname;
+}
+
 TEST_F(GdalDriverTest, RefusesUpdateWithAClearMessage) {
   GdalErrors errors;
   auto ds = OpenWith(dir_, "IRMOSAIC", /*update=*/true);
@@ -176,7 +211,7 @@ TEST_F(GdalDriverTest, RefusesUpdateWithAClearMessage) {
 
 TEST_F(GdalDriverTest, IdentifyIgnoresOtherFilesQuietly) {
   GdalErrors errors;
-  GDALRegister_IRMOSAIC();
+  RegisterInProcess();
   GDALOpenInfo tile((dir_ / "tiles/0/0_0.tif").c_str(), GA_ReadOnly);
   GDALOpenInfo parent(dir_.parent_path().c_str(), GA_ReadOnly);
   GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("IRMOSAIC");
@@ -211,6 +246,68 @@ TEST_F(GdalDriverTest, ReopenAfterAPublishShowsTheLargerExtentAndTheNewGeneratio
   GdalErrors errors;
   EXPECT_NE(Checksum(before->GetRasterBand(1)), 0);
   EXPECT_EQ(errors.count, 0) << errors.last;
+}
+
+TEST_F(GdalDriverTest, FootprintsAreAVectorLayerBesideTheRaster) {
+  // Vector-only (as ogrinfo asks): the frames layer of frames.gpkg, no bands.
+  auto vector = OpenKinds(dir_, GDAL_OF_VECTOR);
+  ASSERT_TRUE(vector);
+  EXPECT_EQ(vector->GetRasterCount(), 0);
+  ASSERT_EQ(vector->GetLayerCount(), 1);
+  OGRLayer* layer = vector->GetLayer(0);
+  ASSERT_NE(layer, nullptr);
+  EXPECT_STREQ(layer->GetName(), "frames");
+  EXPECT_EQ(layer->GetFeatureCount(), 2);
+  EXPECT_EQ(wkbFlatten(layer->GetGeomType()), wkbPolygon);
+  // Frame 1: 10.04 s, its 10 m x 10 m footprint in the mosaic plane (metres).
+  OGRFeatureUniquePtr feature(layer->GetFeature(2));  // FID = frame index + 1.
+  ASSERT_TRUE(feature);
+  EXPECT_EQ(feature->GetFieldAsInteger64("frame_index"), 1);
+  EXPECT_NEAR(feature->GetFieldAsDouble("time_s"), 10.04, 1e-9);
+  OGREnvelope envelope;
+  feature->GetGeometryRef()->getEnvelope(&envelope);
+  EXPECT_NEAR(envelope.MaxX - envelope.MinX, 10.0, 1e-9);
+  EXPECT_NEAR(envelope.MaxY - envelope.MinY, 10.0, 1e-9);
+  // The layer's CRS is the raster's.
+  auto both = OpenKinds(dir_, GDAL_OF_RASTER | GDAL_OF_VECTOR);
+  ASSERT_TRUE(both);
+  EXPECT_EQ(both->GetRasterCount(), 2);
+  ASSERT_EQ(both->GetLayerCount(), 1);
+  ASSERT_NE(both->GetLayer(0)->GetSpatialRef(), nullptr);
+  EXPECT_TRUE(both->GetLayer(0)->GetSpatialRef()->IsSame(both->GetSpatialRef()));
+  // Raster-only (gdalinfo, QGIS raster layers): frames.gpkg is not even opened.
+  auto raster = OpenKinds(dir_, GDAL_OF_RASTER);
+  ASSERT_TRUE(raster);
+  EXPECT_EQ(raster->GetLayerCount(), 0);
+  // The layer follows the store: a reopen after a publish counts the new frame.
+  store_->PutFrameRecord(Frame(2, 10.08));
+  store_->WaitPublished(store_->RequestPublish());
+  auto reopened = OpenKinds(dir_, GDAL_OF_VECTOR);
+  ASSERT_TRUE(reopened);
+  EXPECT_EQ(reopened->GetLayer(0)->GetFeatureCount(), 3);
+}
+
+TEST(GdalDriverEmptyStoreTest, AStoreWithNoTilesYetHasItsLayerButNoRaster) {
+  const fs::path dir = FreshDir("empty") / "s.irmosaic";
+  TileStoreOptions options;
+  options.path = dir.string();
+  options.tile_size = 256;
+  const LocalFrame frame(kLat0, kLon0);
+  auto store = TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
+  store->PutFrameRecord(Frame(0, 1.0));
+  store->WaitPublished(store->RequestPublish());
+  {
+    GdalErrors errors;
+    EXPECT_FALSE(OpenKinds(dir, GDAL_OF_RASTER));
+    EXPECT_NE(errors.last.find("no tiles yet"), std::string::npos) << errors.last;
+    auto vector = OpenKinds(dir, GDAL_OF_VECTOR);
+    ASSERT_TRUE(vector);
+    EXPECT_EQ(vector->GetRasterCount(), 0);
+    ASSERT_EQ(vector->GetLayerCount(), 1);
+    EXPECT_EQ(vector->GetLayer(0)->GetFeatureCount(), 1);
+  }
+  store->Close();
+  fs::remove_all(dir.parent_path());
 }
 
 // Malformed manifests: each is refused with a message, never a crash or a read outside.
@@ -347,6 +444,27 @@ TEST_F(MalformedManifestTest, SymlinkedTileOutOfTheStoreIsNotRead) {
   EXPECT_NE(Checksum(via_link->GetRasterBand(1)), 0);
 }
 
+TEST_F(MalformedManifestTest, FramesGpkgOutOfTheStoreIsNotOpened) {
+  // frames.gpkg replaced by a symlink to a GeoPackage elsewhere: no layer from it; the raster
+  // still opens when it was asked for too, a vector-only open is refused with the reason.
+  const fs::path outside = dir_.parent_path() / "outside.gpkg";
+  fs::copy_file(dir_ / "frames.gpkg", outside);
+  fs::remove(dir_ / "frames.gpkg");
+  fs::create_symlink(outside, dir_ / "frames.gpkg");
+  GdalErrors errors;
+  EXPECT_FALSE(OpenKinds(dir_, GDAL_OF_VECTOR));
+  EXPECT_NE(errors.last.find("outside the store"), std::string::npos) << errors.last;
+  auto both = OpenKinds(dir_, GDAL_OF_RASTER | GDAL_OF_VECTOR);
+  ASSERT_TRUE(both);
+  EXPECT_EQ(both->GetRasterCount(), 2);
+  EXPECT_EQ(both->GetLayerCount(), 0);
+  // Not a GeoPackage at all: refused likewise, never handed to another driver.
+  fs::remove(dir_ / "frames.gpkg");
+  std::ofstream(dir_ / "frames.gpkg") << "{\"type\": \"FeatureCollection\", \"features\": []}";
+  EXPECT_FALSE(OpenKinds(dir_, GDAL_OF_VECTOR));
+  EXPECT_NE(errors.last.find("not a GeoPackage"), std::string::npos) << errors.last;
+}
+
 TEST_F(MalformedManifestTest, FuzzEntryPointsRefuseWithoutThrowing) {
   EXPECT_EQ(IrmosaicDriverOpenForFuzzing(dir_.c_str()), 0);
   EXPECT_EQ(IrmosaicDriverOpenForFuzzing((dir_ / "nothing").c_str()), -1);
@@ -374,7 +492,7 @@ TEST_F(GdalDriverTest, GdalToolsLoadThePlugInAndAgreeWithMosaicVrt) {
   int status = -1;
   const std::string formats = RunTool("gdalinfo --formats", &status);
   ASSERT_EQ(status, 0) << formats;
-  EXPECT_NE(formats.find("IRMOSAIC -raster- (ro"), std::string::npos) << formats;
+  EXPECT_NE(formats.find("IRMOSAIC -raster,vector- (ro"), std::string::npos) << formats;
 
   const std::string ours_text =
       RunTool("gdalinfo -json -checksum '" + dir_.string() + "'", &status);
@@ -410,6 +528,25 @@ TEST_F(GdalDriverTest, GdalToolsLoadThePlugInAndAgreeWithMosaicVrt) {
   ASSERT_TRUE(vrt_ds);
   EXPECT_EQ(Checksum(copy->GetRasterBand(1)), Checksum(vrt_ds->GetRasterBand(1)));
   EXPECT_EQ(copy->GetRasterBand(2)->GetColorInterpretation(), GCI_AlphaBand);
+}
+
+TEST_F(GdalDriverTest, OgrinfoListsTheFootprintsLayerWithItsFeatureCount) {
+  int status = -1;
+  const std::string listing = RunTool("ogrinfo -ro '" + dir_.string() + "'", &status);
+  ASSERT_EQ(status, 0) << listing;
+  EXPECT_NE(listing.find("using driver `IRMOSAIC'"), std::string::npos) << listing;
+  EXPECT_NE(listing.find("1: frames (Polygon)"), std::string::npos) << listing;
+  const std::string summary = RunTool("ogrinfo -ro -so '" + dir_.string() + "' frames", &status);
+  ASSERT_EQ(status, 0) << summary;
+  EXPECT_NE(summary.find("Feature Count: 2"), std::string::npos) << summary;
+  // ogr2ogr copies it like any layer.
+  const fs::path copy = dir_.parent_path() / "footprints.geojson";
+  const std::string out =
+      RunTool("ogr2ogr -f GeoJSON '" + copy.string() + "' '" + dir_.string() + "' frames", &status);
+  ASSERT_EQ(status, 0) << out;
+  GDALDatasetUniquePtr geojson(GDALDataset::Open(copy.c_str(), GDAL_OF_VECTOR));
+  ASSERT_TRUE(geojson);
+  EXPECT_EQ(geojson->GetLayer(0)->GetFeatureCount(), 2);
 }
 
 }  // namespace
