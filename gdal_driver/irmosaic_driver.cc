@@ -406,26 +406,41 @@ std::string ManifestPathOf(const GDALOpenInfo* info) {
   return info->pszFilename;
 }
 
+// Whether the first bytes of a manifest look like an irmosaic store's: a JSON object whose head
+// names "irmosaic-store" (TileStore writes "format" as the first key), or whose first key is
+// "alpha_max" (earlier writers sorted the keys, so "format" came after the WKT and the
+// application state, beyond any cheap header; Open checks the format of those and stays quiet
+// for other JSON).
+bool LooksLikeManifest(const char* head, size_t size) {
+  const std::string text(head, strnlen(head, size));
+  size_t i = text.find_first_not_of(" \t\r\n");
+  if (i == std::string::npos || text[i] != '{') return false;
+  if (text.find("\"irmosaic-store\"") != std::string::npos) return true;
+  i = text.find_first_not_of(" \t\r\n", i + 1);
+  // Nothing after "{": a truncated file; claim it so that Open says so.
+  if (i == std::string::npos) return size < 1024;
+  return text.compare(i, 11, "\"alpha_max\"") == 0;
+}
+
 int Identify(GDALOpenInfo* info) {
+  constexpr size_t kHeadBytes = 1024;  // What GDAL reads of a file's header by default.
   if (info->bIsDirectory) {
-    // Cheap: one stat and the first bytes of the manifest.
+    // Cheap: one open and the first bytes of the manifest.
     const std::string manifest = ManifestPathOf(info);
     VSILFILE* f = VSIFOpenL(manifest.c_str(), "rb");
     if (f == nullptr) return FALSE;
-    char head[64] = {};
-    const size_t got = VSIFReadL(head, 1, sizeof(head) - 1, f);
+    std::vector<char> head(kHeadBytes);
+    const size_t got = VSIFReadL(head.data(), 1, head.size(), f);
     VSIFCloseL(f);
-    size_t i = 0;
-    while (i < got && std::isspace(static_cast<unsigned char>(head[i]))) ++i;
-    return i < got && head[i] == '{' ? TRUE : FALSE;
+    return LooksLikeManifest(head.data(), got) ? TRUE : FALSE;
   }
   if (!EQUAL(CPLGetFilename(info->pszFilename), "manifest.json") || info->nHeaderBytes < 2) {
     return FALSE;
   }
-  const char* head = reinterpret_cast<const char*>(info->pabyHeader);
-  int i = 0;
-  while (i < info->nHeaderBytes && std::isspace(static_cast<unsigned char>(head[i]))) ++i;
-  return i < info->nHeaderBytes && head[i] == '{' ? TRUE : FALSE;
+  return LooksLikeManifest(reinterpret_cast<const char*>(info->pabyHeader),
+                           static_cast<size_t>(info->nHeaderBytes))
+             ? TRUE
+             : FALSE;
 }
 
 class IrmosaicDataset;

@@ -270,7 +270,10 @@ TileImage HalveTile(const TileImage& tile) {
 }
 
 std::string ManifestToJson(const Manifest& manifest) {
-  using nlohmann::json;
+  // Keys in the order written below, "format" first, so a reader's cheap identification (the
+  // GDAL driver's Identify reads 1 KiB) sees it; nlohmann::json would sort them ("alpha_max"
+  // first, "format" after the WKT and the application state).
+  using json = nlohmann::ordered_json;
   json levels = json::array();
   for (size_t level = 0; level < manifest.levels.size(); ++level) {
     json tiles = json::array();
@@ -313,10 +316,12 @@ std::string ManifestToJson(const Manifest& manifest) {
       {"levels", levels},
   };
   if (painted) {
-    j["bounds_px"] = {{"col_min", bounds.col0 * t},
-                      {"row_min", bounds.row0 * t},
-                      {"col_max", bounds.col1 * t},
-                      {"row_max", bounds.row1 * t}};
+    // Whole pixels, written as JSON integers (readers accept the reals older stores hold).
+    const int64_t ti = manifest.tile_size;
+    j["bounds_px"] = {{"col_min", bounds.col0 * ti},
+                      {"row_min", bounds.row0 * ti},
+                      {"col_max", bounds.col1 * ti},
+                      {"row_max", bounds.row1 * ti}};
     j["bounds_m"] = {{"x_min", (bounds.col0 * t - 0.5) * gsd},
                      {"x_max", (bounds.col1 * t - 0.5) * gsd},
                      {"y_min", -(bounds.row1 * t - 0.5) * gsd},

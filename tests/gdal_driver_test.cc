@@ -223,6 +223,44 @@ TEST_F(GdalDriverTest, IdentifyIgnoresOtherFilesQuietly) {
   EXPECT_EQ(errors.count, 0);
 }
 
+TEST_F(GdalDriverTest, IdentifyKnowsNewAndOldManifestsButNotOtherJson) {
+  GdalErrors errors;
+  GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("IRMOSAIC");
+  ASSERT_NE(driver, nullptr);
+  const auto identified = [&](const fs::path& path) {
+    GDALOpenInfo info(path.c_str(), GA_ReadOnly);
+    return driver->pfnIdentify(&info) != 0;
+  };
+  // TileStore writes "format" first (so the first KiB tells) and whole-pixel bounds as integers.
+  std::ifstream in(dir_ / "manifest.json");
+  const std::string text((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_EQ(text.rfind("{\n \"format\": \"irmosaic-store\"", 0), 0u) << text.substr(0, 80);
+  const nlohmann::json j = nlohmann::json::parse(text);
+  EXPECT_TRUE(j["bounds_px"]["col_min"].is_number_integer());
+  // Stores written before: keys sorted ("alpha_max" first, "format" beyond the first KiB after
+  // the WKT and a long application state), bounds as reals. Still identified and opened.
+  nlohmann::json old = j;
+  old["application"] = {{"state", std::string(4000, 'x')}};
+  for (const char* key : {"col_min", "row_min", "col_max", "row_max"}) {
+    old["bounds_px"][key] = old["bounds_px"][key].get<double>();
+  }
+  const std::string old_text = old.dump(1);
+  ASSERT_GT(old_text.find("\"format\""), 4000u);
+  std::ofstream(dir_ / "manifest.json", std::ios::trunc) << old_text;
+  EXPECT_TRUE(identified(dir_));
+  EXPECT_TRUE(identified(dir_ / "manifest.json"));
+  auto ds = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(ds);
+  EXPECT_EQ(ds->GetRasterXSize(), 3 * 256);
+  // Other JSON named manifest.json (a web app's, a GeoJSON): not claimed, no message.
+  const fs::path other = dir_.parent_path() / "webapp";
+  fs::create_directories(other);
+  std::ofstream(other / "manifest.json") << "{\"name\": \"app\", \"icons\": []}";
+  EXPECT_FALSE(identified(other));
+  EXPECT_FALSE(identified(other / "manifest.json"));
+  EXPECT_EQ(errors.count, 0) << errors.last;
+}
+
 TEST_F(GdalDriverTest, ReopenAfterAPublishShowsTheLargerExtentAndTheNewGeneration) {
   auto before = OpenWith(dir_, "IRMOSAIC");
   ASSERT_TRUE(before);
@@ -399,7 +437,8 @@ TEST_F(MalformedManifestTest, AbsurdSizesAndCounts) {
   EXPECT_NE(refused_for([](auto& j) { j["bounds_px"]["col_max"] = 1 << 30; }).find("bounds_px"),
             std::string::npos);
   // Deep nesting is refused before parsing.
-  Write("{\"a\": " + std::string(100000, '[') + std::string(100000, ']') + "}");
+  Write("{\"format\": \"irmosaic-store\", \"a\": " + std::string(100000, '[') +
+        std::string(100000, ']') + "}");
   EXPECT_NE(Refusal().find("nests"), std::string::npos);
 }
 
