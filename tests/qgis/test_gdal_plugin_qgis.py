@@ -6,8 +6,10 @@ usage: GDAL_DRIVER_PATH=PLUGIN_DIR QT_QPA_PLATFORM=offscreen /usr/bin/python3 \
 
 STORE_WRITER (tests/qgis/store_writer.cc) stage 1 creates a store. Checks: the store folder
 loads as a valid layer through the IRMOSAIC driver, with the mosaic CRS, the extent of
-mosaic.vrt, and a non-empty render. Exits 0 when every check passes, 1 otherwise.
+mosaic.vrt, and a non-empty render; its footprints load as a vector layer through the same
+driver, with the manifest's frame count and the mosaic CRS. Exits 0 when every check passes, 1 otherwise.
 """
+import json
 import os
 import shutil
 import subprocess
@@ -17,7 +19,7 @@ import tempfile
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 from qgis.core import (QgsApplication, QgsMapRendererSequentialJob, QgsMapSettings,  # noqa: E402
-                       QgsRasterLayer)
+                       QgsRasterLayer, QgsVectorLayer)
 from qgis.PyQt.QtCore import QSize  # noqa: E402
 from qgis.PyQt.QtGui import QColor  # noqa: E402
 
@@ -76,6 +78,16 @@ def main():
     check(painted > 0, "render is not empty (%d painted samples)" % painted)
     check(painted < 128 * 128, "uncovered area renders transparent (%d of %d painted)" %
           (painted, 128 * 128))
+    # The footprints: layer "frames" of the same dataset, through QGIS's OGR provider.
+    with open(os.path.join(store, "manifest.json")) as f:
+        frame_count = json.load(f)["frames"]["count"]
+    frames = QgsVectorLayer(store + "|layername=frames", "frames", "ogr")
+    check(frames.isValid(), "the store folder loads as a valid vector layer (footprints)")
+    check(frames.dataProvider().storageType() == "IRMOSAIC",
+          "footprints opened by the IRMOSAIC driver: " + frames.dataProvider().storageType())
+    check(frame_count > 0 and frames.featureCount() == frame_count,
+          "footprints: %d features, manifest says %d" % (frames.featureCount(), frame_count))
+    check(frames.crs().toProj().startswith(ortho), "footprints CRS is the ortho tangent plane")
     shutil.rmtree(work, ignore_errors=True)
     print("%d failure(s)" % len(failures))
     sys.stdout.flush()
