@@ -21,9 +21,12 @@ Usage: docs_test.py --source SOURCE_DIR --build BUILD_DIR [--only FILE.md ...] [
    - other languages (text, json, csv, cpp without a marker...) are shown, not run;
    - shell commands outside ```sh fences (indented blocks, unlabelled fences starting with a
      known command) are errors: every command shown must be run or marked.
+3. Commands quoted inline (`irmosaic CMD --option ...`, `build/bench/NAME ...`) are not run
+   (benchmarks take minutes); the command and each irmosaic option must exist.
 Exit status 0 when everything holds; 1 otherwise, with each failure explained.
 """
 import argparse
+import glob
 import os
 import re
 import shutil
@@ -224,6 +227,40 @@ def check_cli_reference(cli, source):
     return problems
 
 
+def check_inline_commands(cli, source, files):
+    """Commands quoted inline (`irmosaic CMD --opt ...`, `build/...`): the command and each
+    option exist. Benchmarks and long runs are quoted this way; they are not run here."""
+    problems, checked = [], 0
+    commands = set(commands_of(cli))
+    helps = {}
+    for rel in files:
+        text = open(os.path.join(source, rel), encoding="utf-8").read()
+        text = re.sub(r"```.*?```", "", text, flags=re.S)  # fenced blocks are run instead
+        for span in re.findall(r"`([^`\n]+)`", text):
+            words = span.split()
+            if len(words) >= 2 and words[0] == "irmosaic" and words[1] in commands:
+                if words[1] not in helps:
+                    helps[words[1]] = help_of(cli, words[1])[0]
+                for word in words[2:]:
+                    option = word.split("=")[0]
+                    if option.startswith("-") and len(option) > 1 and not option[1].isdigit() \
+                            and option not in helps[words[1]] and option != "--help":
+                        problems.append("%s: `%s`: irmosaic %s has no option %s"
+                                        % (rel, span, words[1], option))
+                checked += 1
+            elif words and re.match(r"^build/(bench|tests|cli|gdalplugins|python)/\S+$", words[0]):
+                kind, name = words[0].split("/")[1], words[0].split("/", 2)[2]
+                if kind in ("bench", "tests"):  # one program per bench/NAME.cc, tests/NAME.cc
+                    exists = os.path.exists(os.path.join(source, kind, name + ".cc"))
+                else:
+                    exists = bool(glob.glob(os.path.join(os.path.dirname(cli), "..", kind, name)))
+                if not exists:
+                    problems.append("%s: `%s`: %s is not built by this tree" % (rel, span, words[0]))
+                checked += 1
+    print("inline commands: %d checked (command and options exist; not run)" % checked)
+    return problems
+
+
 # ---------------------------------------------------------------------------------------------
 # Running the blocks
 
@@ -277,6 +314,8 @@ def main():
                                    env.get("PATH", "")])
     env["PYTHONPATH"] = os.path.join(build, "python")
     env.setdefault("QT_QPA_PLATFORM", "offscreen")
+    if not args.only:
+        problems += check_inline_commands(cli, source, doc_files(source, []))
     root = tempfile.mkdtemp(prefix="irmosaic_docs_")
     ran, not_run, shown = [], [], 0
     try:
