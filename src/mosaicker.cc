@@ -63,6 +63,13 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("search_radius_px must be in [4, 1024]");
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
+  if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
+    return fail("origin_lat_deg and origin_lon_deg: set both or neither (NaN: the first POS)");
+  }
+  if (!std::isnan(origin_lat_deg) &&
+      !(std::abs(origin_lat_deg) < 89.0 && std::abs(origin_lon_deg) <= 180.0)) {
+    return fail("origin_lat_deg must be in (-89, 89) and origin_lon_deg in [-180, 180] degrees");
+  }
   // The store's own rules (tile size, compression), checked here so that a bad value is
   // refused at construction, not at the first placed frame.
   TileStoreOptions store;
@@ -93,12 +100,6 @@ class Mosaicker::Impl : public MosaicSink {
       throw InputError({"options", 0, 0, "origin_lat_deg"},
                        "the POS track is empty, so the origin and GSD cannot come from it",
                        "set origin_lat_deg, origin_lon_deg and gsd_m, or give a POS track");
-    }
-    if (!std::isnan(options_.origin_lat_deg) &&
-        !(std::abs(options_.origin_lat_deg) < 89.0 && std::abs(options_.origin_lon_deg) <= 180.0)) {
-      throw InputError({"options", 0, 0, "origin_lat_deg"},
-                       "the origin is not a latitude in (-89, 89) and a longitude in [-180, 180]",
-                       "give the origin in degrees");
     }
     const double lat0 = std::isnan(options_.origin_lat_deg) ? pos_.records().front().lat_deg
                                                             : options_.origin_lat_deg;

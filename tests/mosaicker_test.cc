@@ -185,6 +185,8 @@ TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
       {"max_range_m", [](MosaickerOptions* o) { o->max_range_m = std::nan(""); }},
       {"pos_position_sigma_m", [](MosaickerOptions* o) { o->pos_position_sigma_m = 0.0; }},
       {"fusion", [](MosaickerOptions* o) { o->fusion.window_frames = -5; }},
+      {"origin_lat_deg", [](MosaickerOptions* o) { o->origin_lat_deg = 91.0; }},
+      {"origin_lon_deg", [](MosaickerOptions* o) { o->origin_lat_deg = 47.0; }},
   };
   for (const Case& c : cases) {
     MosaickerOptions bad = good;
