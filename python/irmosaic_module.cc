@@ -10,6 +10,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -114,7 +115,8 @@ py::dict RecordToDict(const PosRecord& r) {
 
 // A POS record from any mapping with the CSV column names (docs/formats.md); the attitude
 // columns are required as in the CSV, the gimbal ones default to 0.
-PosRecord RecordFromMapping(const py::handle& item, size_t position, const std::string& source) {
+PosRecord RecordFromMapping(const py::handle& item, size_t position, const std::string& source,
+                            bool time_required = true) {
   const std::string where = source + " record " + std::to_string(position);
   if (!py::isinstance<py::dict>(item) && !py::hasattr(item, "__getitem__")) {
     throw py::type_error(where + ": expected a dict-like record with keys such as 'time_s'");
@@ -137,7 +139,7 @@ PosRecord RecordFromMapping(const py::handle& item, size_t position, const std::
     }
   };
   PosRecord r;
-  r.time_s = get("time_s", true);
+  r.time_s = get("time_s", time_required);
   r.lat_deg = get("lat_deg", true);
   r.lon_deg = get("lon_deg", true);
   r.height_m = get("height_m", true);
@@ -169,11 +171,27 @@ TileStoreOptions::Mode ModeFromName(const std::string& name) {
   throw py::value_error("mode '" + name + "' is not one of 'create', 'overwrite', 'resume'");
 }
 
-// GDAL geotransform of a level-0 window whose top-left pixel is mosaic pixel (col0, row0):
-// pixel (col, row) is centred on plane (col*gsd, -row*gsd), so its corner is half a pixel off.
-py::tuple WindowGeoTransform(double gsd_m, int64_t col0, int64_t row0) {
-  return py::make_tuple((static_cast<double>(col0) - 0.5) * gsd_m, gsd_m, 0.0,
-                        -(static_cast<double>(row0) - 0.5) * gsd_m, 0.0, -gsd_m);
+py::dict FrameRecordToDict(const FrameRecord& r) {
+  py::dict d;
+  d["index"] = r.index;
+  d["time_s"] = r.time_s;
+  Eigen::Matrix<double, 4, 2, Eigen::RowMajor> footprint;
+  for (int k = 0; k < 4; ++k) footprint.row(k) = r.footprint_m[k].transpose();
+  d["footprint_m"] = footprint;
+  d["pos_only"] = r.pos_only;
+  d["residual_px"] = r.residual_px;
+  d["inliers"] = r.inliers;
+  d["status"] = r.status;
+  return d;
+}
+
+py::dict PushResultToDict(const PushResult& result) {
+  py::dict d;
+  d["placed"] = result.placed();
+  d["reason"] = result.reason;
+  d["placement"] =
+      result.placed() ? py::object(PlacementToDict(result.placement)) : py::object(py::none());
+  return d;
 }
 
 TileStore& StoreOf(Mosaicker& m) {
@@ -326,30 +344,70 @@ PYBIND11_MODULE(irmosaic, m) {
 
   py::class_<Mosaicker>(m, "Mosaicker",
                         "The whole pipeline: push frames with a POS track, read the live mosaic.")
-      .def(py::init<MosaickerOptions, CameraModel, PosTrack>(), py::arg("options"),
-           py::arg("camera"), py::arg("pos"))
+      .def(py::init([](MosaickerOptions options, CameraModel camera, std::optional<PosTrack> pos) {
+             return std::make_unique<Mosaicker>(std::move(options), std::move(camera),
+                                                pos ? std::move(*pos) : PosTrack());
+           }),
+           py::arg("options"), py::arg("camera"), py::arg("pos") = py::none(),
+           "pos None: poses come with each push (then set origin_lat_deg, origin_lon_deg and "
+           "gsd_m in the options).")
       .def(
           "push",
-          [](Mosaicker& self, int64_t index, double time_s, const py::array& image) {
+          [](Mosaicker& self, int64_t index, double time_s, const py::array& image,
+             const py::object& pose) {
             const cv::Mat mat = MatFromArray(image, "image");
+            std::optional<Pose> given;
+            if (!pose.is_none()) given = PoseFromRecord(RecordFromMapping(pose, 0, "pose", false));
             PushResult result;
             {
               py::gil_scoped_release release;
-              result = self.Push(index, time_s, mat);
+              result =
+                  given ? self.Push(index, time_s, *given, mat) : self.Push(index, time_s, mat);
             }
-            py::dict d;
-            d["placed"] = result.placed();
-            d["reason"] = result.reason;
-            d["placement"] = result.placed() ? py::object(PlacementToDict(result.placement))
-                                             : py::object(py::none());
-            return d;
+            return PushResultToDict(result);
           },
-          py::arg("index"), py::arg("time_s"), py::arg("image"),
-          "Places a frame (2-D uint8/uint16/float32 array); returns {'placed', 'reason', "
-          "'placement'}. A frame that cannot be placed is skipped with a reason.")
+          py::arg("index"), py::arg("time_s"), py::arg("image"), py::arg("pose") = py::none(),
+          "Places a frame (2-D uint8/uint16/float32 array) taken at time_s; its pose from the "
+          "POS track, or from `pose` (a dict with the POS CSV fields, time_s optional). Returns "
+          "{'placed', 'reason', 'placement'}; a frame that cannot be placed is skipped with a "
+          "reason.")
+      .def(
+          "on_published",
+          [](Mosaicker& self, const py::object& callback) {
+            if (callback.is_none()) {
+              self.OnPublished(nullptr);
+              return;
+            }
+            if (!PyCallable_Check(callback.ptr())) {
+              throw py::type_error("on_published: expected a callable taking the generation");
+            }
+            auto holder = std::make_shared<py::object>(callback);
+            self.OnPublished([holder](int64_t generation) {
+              py::gil_scoped_acquire acquire;
+              (*holder)(generation);
+            });
+          },
+          py::arg("callback"),
+          "callback(generation) after each publish, called from push/finish/request_publish "
+          "(the calling thread); None removes it.")
+      .def("published_generation", &Mosaicker::published_generation,
+           "Generation last published on disk (0: none yet).")
+      .def("wait_published", &Mosaicker::WaitPublished, py::arg("generation"),
+           py::call_guard<py::gil_scoped_release>(),
+           "Blocks until that generation is on disk; raises OutputError if the store failed.")
+      .def(
+          "frame_records",
+          [](const Mosaicker& self) {
+            py::list out;
+            for (const FrameRecord& r : self.FrameRecords()) out.append(FrameRecordToDict(r));
+            return out;
+          },
+          "Per-frame records as in frames.gpkg: [{'index', 'time_s', 'footprint_m' (4x2, "
+          "mosaic plane metres), 'pos_only', 'residual_px', 'inliers', 'status'}].")
       .def("finish", &Mosaicker::Finish, py::call_guard<py::gil_scoped_release>(),
            "Last solve, re-render and final publish.")
-      .def("request_publish", &Mosaicker::RequestPublish)
+      .def("request_publish", &Mosaicker::RequestPublish,
+           "Asks the store to publish now (non-blocking).")
       .def("placements",
            [](const Mosaicker& self) {
              py::list out;
@@ -384,7 +442,7 @@ PYBIND11_MODULE(irmosaic, m) {
           "Painted level-0 extent as (col, row, width, height) in mosaic pixels.")
       .def("georeference",
            [](Mosaicker& self) {
-             const StoreGeoreference& g = StoreOf(self).georeference();
+             const StoreGeoreference& g = self.georeference();
              py::dict d;
              d["origin_lat_deg"] = g.origin_lat_deg;
              d["origin_lon_deg"] = g.origin_lon_deg;
@@ -403,17 +461,17 @@ PYBIND11_MODULE(irmosaic, m) {
             if (col < -limit || col > limit || row < -limit || row > limit) {
               throw py::value_error("read_window: col/row out of range");
             }
-            TileStore& store = StoreOf(self);
-            cv::Mat image, coverage;
+            StoreOf(self);  // RuntimeError before the first placed frame.
+            MosaicWindow window;
             {
               py::gil_scoped_release release;
-              store.ReadWindow(cv::Rect(static_cast<int>(col), static_cast<int>(row),
-                                        static_cast<int>(width), static_cast<int>(height)),
-                               &image, &coverage);
+              window = self.ReadWindow(cv::Rect(static_cast<int>(col), static_cast<int>(row),
+                                                static_cast<int>(width), static_cast<int>(height)));
             }
-            const StoreGeoreference& g = store.georeference();
-            return py::make_tuple(ArrayFromMat(image), ArrayFromMat(coverage),
-                                  WindowGeoTransform(g.gsd_m, col, row), g.crs_wkt);
+            const std::array<double, 6>& gt = window.geotransform;
+            return py::make_tuple(ArrayFromMat(window.image), ArrayFromMat(window.coverage),
+                                  py::make_tuple(gt[0], gt[1], gt[2], gt[3], gt[4], gt[5]),
+                                  window.crs_wkt);
           },
           py::arg("col"), py::arg("row"), py::arg("width"), py::arg("height"),
           "Level-0 window at mosaic pixel (col, row): (image, coverage 0/255, GDAL geotransform, "

@@ -46,6 +46,10 @@ Eigen::Vector2d ImageFromOrtho(const OrthoImage& ortho, const Eigen::Vector2d& p
 
 }  // namespace
 
+std::array<double, 6> WindowGeoTransform(double gsd_m, cv::Point top_left_px) {
+  return {(top_left_px.x - 0.5) * gsd_m, gsd_m, 0.0, -(top_left_px.y - 0.5) * gsd_m, 0.0, -gsd_m};
+}
+
 bool MosaickerOptions::IsValid(std::string* error) const {
   auto fail = [&](const std::string& text) {
     if (error) *error = text;
@@ -59,6 +63,21 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("search_radius_px must be in [4, 1024]");
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
+  if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
+    return fail("origin_lat_deg and origin_lon_deg: set both or neither (NaN: the first POS)");
+  }
+  if (!std::isnan(origin_lat_deg) &&
+      !(std::abs(origin_lat_deg) < 89.0 && std::abs(origin_lon_deg) <= 180.0)) {
+    return fail("origin_lat_deg must be in (-89, 89) and origin_lon_deg in [-180, 180] degrees");
+  }
+  // The store's own rules (tile size, compression), checked here so that a bad value is
+  // refused at construction, not at the first placed frame.
+  TileStoreOptions store;
+  store.path = store_path;
+  store.tile_size = tile_size;
+  store.compression = compression;
+  std::string store_error;
+  if (!store.IsValid(&store_error)) return fail(store_error);
   std::string fusion_error;
   if (!fusion.IsValid(&fusion_error)) return fail("fusion: " + fusion_error);
   return true;
@@ -76,14 +95,20 @@ class Mosaicker::Impl : public MosaicSink {
     if (!options_.IsValid(&error)) {
       throw InputError({"options", 0, 0, ""}, error, "correct the option");
     }
-    const PosRecord& first = pos_.records().front();
-    const double lat0 =
-        std::isnan(options_.origin_lat_deg) ? first.lat_deg : options_.origin_lat_deg;
-    const double lon0 =
-        std::isnan(options_.origin_lon_deg) ? first.lon_deg : options_.origin_lon_deg;
+    if (pos_.empty() && (std::isnan(options_.origin_lat_deg) ||
+                         std::isnan(options_.origin_lon_deg) || options_.gsd_m == 0.0)) {
+      throw InputError({"options", 0, 0, "origin_lat_deg"},
+                       "the POS track is empty, so the origin and GSD cannot come from it",
+                       "set origin_lat_deg, origin_lon_deg and gsd_m, or give a POS track");
+    }
+    const double lat0 = std::isnan(options_.origin_lat_deg) ? pos_.records().front().lat_deg
+                                                            : options_.origin_lat_deg;
+    const double lon0 = std::isnan(options_.origin_lon_deg) ? pos_.records().front().lon_deg
+                                                            : options_.origin_lon_deg;
     frame_ = std::make_unique<LocalFrame>(lat0, lon0);
     double gsd = options_.gsd_m;
     if (gsd == 0.0) {
+      const PosRecord& first = pos_.records().front();
       const double above_ground = first.height_m - options_.ground_height_m;
       if (!(above_ground > 1.0)) {
         throw InputError({"POS", 1, 0, "height_m"},
@@ -110,7 +135,7 @@ class Mosaicker::Impl : public MosaicSink {
     fusion_.reset();  // Joins the optimizer before the store goes.
   }
 
-  PushResult Push(int64_t index, double time_s, const cv::Mat& image) {
+  PushResult Push(int64_t index, double time_s, const Pose* given_pose, const cv::Mat& image) {
     const auto arrival = Clock::now();
     PushResult result;
     Count(&MosaickerSummary::frames_pushed);
@@ -133,8 +158,22 @@ class Mosaicker::Impl : public MosaicSink {
       return skip(std::string("its bit depth differs from the store's (") +
                   GdalTypeNameOf(store_->pixel_type()) + ")");
     }
-    const PoseLookup pose = pos_.At(time_s);
-    if (!pose.ok()) return skip("no POS: " + pose.message);
+    PoseLookup pose;
+    if (given_pose != nullptr) {
+      pose.pose = *given_pose;
+      if (!std::isfinite(pose.pose.lat_deg) || !std::isfinite(pose.pose.lon_deg) ||
+          !std::isfinite(pose.pose.height_m) || std::abs(pose.pose.lat_deg) > 90.0 ||
+          !pose.pose.ned_from_body.coeffs().allFinite() ||
+          !pose.pose.body_from_mount.coeffs().allFinite() ||
+          pose.pose.ned_from_body.norm() < 1e-9 || pose.pose.body_from_mount.norm() < 1e-9) {
+        return skip("the given pose is not finite (position or attitude)");
+      }
+      pose.pose.ned_from_body.normalize();
+      pose.pose.body_from_mount.normalize();
+    } else {
+      pose = pos_.At(time_s);
+      if (!pose.ok()) return skip("no POS: " + pose.message);
+    }
     GeometryOptions geometry_options;
     geometry_options.max_range_m = options_.max_range_m;
     const FrameGeometry geometry =
@@ -167,13 +206,19 @@ class Mosaicker::Impl : public MosaicSink {
     pending_.push_back({arrival, 0});
     if (Clock::now() - last_publish_ >=
         std::chrono::duration<double>(options_.publish_interval_s)) {
-      RequestPublish();
+      RequestPublishQuiet();
     }
     CollectLatencies();
+    NotifyPublished();
     return result;
   }
 
   void RequestPublish() {
+    RequestPublishQuiet();
+    NotifyPublished();
+  }
+
+  void RequestPublishQuiet() {
     if (!store_) return;
     nlohmann::json state = {{"last_index", last_index_}};
     store_->SetApplicationState(state.dump());
@@ -187,10 +232,62 @@ class Mosaicker::Impl : public MosaicSink {
   void Finish() {
     fusion_->Finish();
     if (!store_) return;
-    RequestPublish();
+    RequestPublishQuiet();
     store_->Close();
     CollectLatencies();
+    NotifyPublished();
   }
+
+  void OnPublished(std::function<void(int64_t)> callback) { on_published_ = std::move(callback); }
+
+  int64_t published_generation() const {
+    const TileStore* store = StoreView();
+    return store ? store->published_generation() : 0;
+  }
+
+  void WaitPublished(int64_t generation) {
+    TileStore* store = StoreView();
+    if (generation <= 0) return;
+    if (!store) {
+      throw OutputError("nothing can be published yet: no frame has been placed in " +
+                        options_.store_path);
+    }
+    store->WaitPublished(generation);
+  }
+
+  std::vector<FrameRecord> FrameRecords() const {
+    const TileStore* store = StoreView();
+    return store ? store->FrameRecords() : std::vector<FrameRecord>();
+  }
+
+  cv::Rect bounds_px() const {
+    const TileStore* store = StoreView();
+    return store ? store->level0_bounds_px() : cv::Rect();
+  }
+
+  MosaicWindow ReadWindow(const cv::Rect& mosaic_px) const {
+    const TileStore* store = StoreView();
+    if (!store) {
+      throw InputError({"ReadWindow", 0, 0, ""}, "no frame has been placed yet, so no mosaic",
+                       "push a frame that is placed first");
+    }
+    constexpr int kMaxSide = 65536;
+    if (mosaic_px.width <= 0 || mosaic_px.height <= 0 || mosaic_px.width > kMaxSide ||
+        mosaic_px.height > kMaxSide) {
+      throw InputError({"ReadWindow", 0, 0, "mosaic_px"},
+                       "window " + std::to_string(mosaic_px.width) + " x " +
+                           std::to_string(mosaic_px.height) + " pixels is not 1..65536 a side",
+                       "read a smaller window (bounds_px() gives the painted extent)");
+    }
+    MosaicWindow window;
+    window.mosaic_px = mosaic_px;
+    store->ReadWindow(mosaic_px, &window.image, &window.coverage);
+    window.geotransform = WindowGeoTransform(grid_.gsd_m, mosaic_px.tl());
+    window.crs_wkt = georef_.crs_wkt;
+    return window;
+  }
+
+  const StoreGeoreference& georeference() const { return georef_; }
 
   MosaickerSummary summary() const {
     std::lock_guard<std::mutex> lock(mu_);
@@ -293,7 +390,11 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.tile_size = options_.tile_size;
     store_options.compression = options_.compression;
     store_options.pixel_type = type;
-    store_ = TileStore::Open(store_options, georef_);
+    std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
+    {
+      std::lock_guard<std::mutex> lock(mu_);  // Other threads read store_ through StoreView().
+      store_ = std::move(opened);
+    }
     if (options_.mode == TileStoreOptions::Mode::kResume) {
       const std::string state = store_->application_state();
       if (!state.empty()) {
@@ -360,6 +461,20 @@ class Mosaicker::Impl : public MosaicSink {
     return match;
   }
 
+  TileStore* StoreView() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return store_.get();
+  }
+
+  // Producer thread only: tells the callback about generations published since the last call.
+  void NotifyPublished() {
+    if (!on_published_ || !store_) return;
+    const int64_t published = store_->published_generation();
+    if (published <= notified_generation_) return;
+    notified_generation_ = published;
+    on_published_(published);
+  }
+
   void CollectLatencies() {
     if (!store_) return;
     const int64_t published = store_->published_generation();
@@ -393,14 +508,30 @@ class Mosaicker::Impl : public MosaicSink {
   std::deque<std::pair<Clock::time_point, int64_t>> pending_;  // (arrival, generation)
   std::vector<double> latencies_s_;
   MosaickerSummary summary_;
+  std::function<void(int64_t)> on_published_;
+  int64_t notified_generation_ = 0;
 };
 
 Mosaicker::Mosaicker(MosaickerOptions options, CameraModel camera, PosTrack pos)
     : impl_(std::make_unique<Impl>(std::move(options), std::move(camera), std::move(pos))) {}
 Mosaicker::~Mosaicker() = default;
 PushResult Mosaicker::Push(int64_t index, double time_s, const cv::Mat& image) {
-  return impl_->Push(index, time_s, image);
+  return impl_->Push(index, time_s, nullptr, image);
 }
+PushResult Mosaicker::Push(int64_t index, double time_s, const Pose& pose, const cv::Mat& image) {
+  return impl_->Push(index, time_s, &pose, image);
+}
+void Mosaicker::OnPublished(std::function<void(int64_t generation)> callback) {
+  impl_->OnPublished(std::move(callback));
+}
+int64_t Mosaicker::published_generation() const { return impl_->published_generation(); }
+void Mosaicker::WaitPublished(int64_t generation) { impl_->WaitPublished(generation); }
+std::vector<FrameRecord> Mosaicker::FrameRecords() const { return impl_->FrameRecords(); }
+cv::Rect Mosaicker::bounds_px() const { return impl_->bounds_px(); }
+MosaicWindow Mosaicker::ReadWindow(const cv::Rect& mosaic_px) const {
+  return impl_->ReadWindow(mosaic_px);
+}
+const StoreGeoreference& Mosaicker::georeference() const { return impl_->georeference(); }
 void Mosaicker::SetReplay(bool replay) { impl_->SetReplay(replay); }
 void Mosaicker::Finish() { impl_->Finish(); }
 void Mosaicker::RequestPublish() { impl_->RequestPublish(); }

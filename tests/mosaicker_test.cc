@@ -1,12 +1,18 @@
 // The whole pipeline as a library object on a simulated flight: radiometric compensation of
-// automatic-gain-control jumps, and bad frames skipped with reasons.
+// automatic-gain-control jumps, bad frames skipped with reasons, and the library API a GIS
+// pipeline uses (validated options, poses pushed directly, published generations, the mosaic
+// window with its geotransform checked against GDAL, per-frame records).
 #include "irmosaic/mosaicker.h"
 
+#include <gdal_priv.h>
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <filesystem>
 #include <opencv2/imgproc.hpp>
+#include <thread>
 
+#include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
 #include "irmosaic/orthorectify.h"
 #include "irmosaic/simulator.h"
@@ -136,6 +142,264 @@ TEST(MosaickerTest, BadFramesAreSkippedWithReasonsAndTheRunGoesOn) {
   EXPECT_EQ(mosaicker.summary().frames_placed, 2);
   EXPECT_EQ(mosaicker.summary().frames_skipped, 4);
   fs::remove_all(store);
+}
+
+std::string TempStore(const std::string& name) {
+  return (fs::temp_directory_path() / ("irmosaic_" + name + "_" + std::to_string(::getpid())))
+      .string();
+}
+
+// The message IsValid gives (empty if valid) and the constructor's InputError text.
+std::pair<std::string, std::string> Refusal(const MosaickerOptions& options) {
+  std::string error;
+  if (options.IsValid(&error)) error.clear();
+  std::string thrown;
+  try {
+    FlightSimulator sim(Flight(2));
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+  } catch (const InputError& e) {
+    thrown = e.what();
+  }
+  return {error, thrown};
+}
+
+TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
+  MosaickerOptions good;
+  good.store_path = TempStore("never_opened");
+  std::string error;
+  EXPECT_TRUE(good.IsValid(&error)) << error;
+  struct Case {
+    const char* name;
+    void (*change)(MosaickerOptions*);
+  };
+  const Case cases[] = {
+      {"store_path", [](MosaickerOptions* o) { o->store_path.clear(); }},
+      {"tile_size", [](MosaickerOptions* o) { o->tile_size = 100; }},
+      {"tile_size", [](MosaickerOptions* o) { o->tile_size = 0; }},
+      {"tile_size", [](MosaickerOptions* o) { o->tile_size = 1 << 20; }},
+      {"compression", [](MosaickerOptions* o) { o->compression = "JPEG"; }},
+      {"gsd_m", [](MosaickerOptions* o) { o->gsd_m = -1.0; }},
+      {"gsd_m", [](MosaickerOptions* o) { o->gsd_m = std::numeric_limits<double>::infinity(); }},
+      {"search_radius_px", [](MosaickerOptions* o) { o->search_radius_px = 2.0; }},
+      {"publish_interval_s", [](MosaickerOptions* o) { o->publish_interval_s = 0.0; }},
+      {"max_range_m", [](MosaickerOptions* o) { o->max_range_m = std::nan(""); }},
+      {"pos_position_sigma_m", [](MosaickerOptions* o) { o->pos_position_sigma_m = 0.0; }},
+      {"fusion", [](MosaickerOptions* o) { o->fusion.window_frames = -5; }},
+      {"origin_lat_deg", [](MosaickerOptions* o) { o->origin_lat_deg = 91.0; }},
+      {"origin_lon_deg", [](MosaickerOptions* o) { o->origin_lat_deg = 47.0; }},
+  };
+  for (const Case& c : cases) {
+    MosaickerOptions bad = good;
+    c.change(&bad);
+    const auto [message, thrown] = Refusal(bad);
+    EXPECT_NE(message.find(c.name), std::string::npos) << c.name << ": '" << message << "'";
+    EXPECT_NE(thrown.find(c.name), std::string::npos) << c.name << ": '" << thrown << "'";
+  }
+  EXPECT_FALSE(fs::exists(good.store_path));  // Refused before anything was written.
+}
+
+TEST(MosaickerApiTest, AnEmptyPosTrackNeedsTheOriginAndGsd) {
+  FlightSimulator sim(Flight(2));
+  MosaickerOptions options;
+  options.store_path = TempStore("empty_pos");
+  try {
+    Mosaicker m(options, sim.camera(), PosTrack());
+    ADD_FAILURE() << "an empty POS track without origin was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("origin_lat_deg, origin_lon_deg and gsd_m"),
+              std::string::npos)
+        << e.what();
+  }
+  options.origin_lat_deg = 95.0;
+  options.origin_lon_deg = 8.0;
+  options.gsd_m = 0.3;
+  EXPECT_THROW(Mosaicker(options, sim.camera(), PosTrack()), InputError);
+}
+
+// Poses given with each frame (a live POS stream, no track) place frames as the track does.
+TEST(MosaickerApiTest, PosesPushedDirectlyPlaceFramesAsTheTrackDoes) {
+  FlightSimulator sim(Flight(5));
+  MosaickerOptions with_track;
+  with_track.store_path = TempStore("track");
+  with_track.mode = TileStoreOptions::Mode::kOverwrite;
+  Mosaicker tracked(with_track, sim.camera(), sim.MeasuredPos());
+
+  MosaickerOptions with_poses = with_track;
+  with_poses.store_path = TempStore("poses");
+  with_poses.origin_lat_deg = tracked.georeference().origin_lat_deg;
+  with_poses.origin_lon_deg = tracked.georeference().origin_lon_deg;
+  with_poses.gsd_m = tracked.georeference().gsd_m;
+  Mosaicker posed(with_poses, sim.camera(), PosTrack());
+  EXPECT_EQ(posed.georeference().crs_wkt, tracked.georeference().crs_wkt);
+
+  for (int i = 0; i < 5; ++i) {
+    const SimFrame f = sim.Render(i);
+    const PushResult a = tracked.Push(i, f.time_s, f.image);
+    const PushResult b = posed.Push(i, f.time_s, PoseFromRecord(f.measured_pos), f.image);
+    ASSERT_TRUE(a.placed()) << a.reason;
+    ASSERT_TRUE(b.placed()) << b.reason;
+    // Same POS prediction (the track interpolates at a sample time): same corners to 1e-3 px.
+    for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 511)}) {
+      const Eigen::Vector2d pa = ApplyHomography(a.placement.pos_mosaic_from_image, corner);
+      const Eigen::Vector2d pb = ApplyHomography(b.placement.pos_mosaic_from_image, corner);
+      EXPECT_LT((pa - pb).norm(), 1e-3) << "frame " << i;
+    }
+  }
+  // A pose that is not finite is a skipped frame with a reason, not a crash.
+  Pose broken = PoseFromRecord(sim.Render(0).measured_pos);
+  broken.lat_deg = std::nan("");
+  const PushResult skipped = posed.Push(9, 0.0, broken, sim.Render(0).image);
+  EXPECT_FALSE(skipped.placed());
+  EXPECT_NE(skipped.reason.find("pose is not finite"), std::string::npos) << skipped.reason;
+  tracked.Finish();
+  posed.Finish();
+  EXPECT_EQ(posed.summary().frames_placed, 5);
+  EXPECT_EQ(posed.summary().frames_skipped, 1);
+  fs::remove_all(with_track.store_path);
+  fs::remove_all(with_poses.store_path);
+}
+
+// Reads band 1 and the alpha band of a raster whole through GDAL.
+struct GdalRaster {
+  std::array<double, 6> geotransform = {};
+  cv::Mat values, alpha;
+};
+GdalRaster ReadWithGdal(const std::string& path, int cv_type) {
+  GDALAllRegister();
+  GdalRaster out;
+  std::unique_ptr<GDALDataset> ds(GDALDataset::FromHandle(GDALOpen(path.c_str(), GA_ReadOnly)));
+  if (!ds) return out;
+  ds->GetGeoTransform(out.geotransform.data());
+  const int w = ds->GetRasterXSize(), h = ds->GetRasterYSize();
+  out.values = cv::Mat(h, w, cv_type);
+  out.alpha = cv::Mat(h, w, cv_type);
+  const GDALDataType type = cv_type == CV_8U    ? GDT_Byte
+                            : cv_type == CV_16U ? GDT_UInt16
+                                                : GDT_Float32;
+  if (ds->GetRasterBand(1)->RasterIO(GF_Read, 0, 0, w, h, out.values.data, w, h, type, 0, 0) !=
+          CE_None ||
+      ds->GetRasterBand(2)->RasterIO(GF_Read, 0, 0, w, h, out.alpha.data, w, h, type, 0, 0) !=
+          CE_None) {
+    return GdalRaster();
+  }
+  return out;
+}
+
+TEST(MosaickerApiTest, GenerationsWindowAndRecordsAgreeWithWhatGdalReads) {
+  FlightSimulator sim(Flight(6));
+  MosaickerOptions options;
+  options.store_path = TempStore("api");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  options.publish_interval_s = 1e-3;
+  Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+  // Before any frame: nothing to read, nothing published.
+  EXPECT_TRUE(m.bounds_px().empty());
+  EXPECT_TRUE(m.FrameRecords().empty());
+  EXPECT_EQ(m.published_generation(), 0);
+  EXPECT_THROW(m.ReadWindow(cv::Rect(0, 0, 10, 10)), InputError);
+
+  std::vector<int64_t> generations;
+  m.OnPublished([&](int64_t generation) { generations.push_back(generation); });
+
+  // A reader thread polls the live mosaic while frames are pushed: coverage of a fixed window
+  // only grows (painting never uncovers a pixel).
+  std::atomic<bool> done{false};
+  std::atomic<int> reads{0}, shrinks{0}, errors{0};
+  std::thread reader([&] {
+    cv::Rect window;
+    int last_covered = 0;
+    while (!done.load()) {
+      try {
+        if (window.empty()) window = m.bounds_px();
+        if (!window.empty()) {
+          const MosaicWindow w = m.ReadWindow(window);
+          const int covered = cv::countNonZero(w.coverage);
+          if (covered < last_covered) ++shrinks;
+          last_covered = covered;
+          ++reads;
+        }
+        (void)m.summary();
+        (void)m.FrameRecords();
+        (void)m.published_generation();
+      } catch (const std::exception&) {
+        ++errors;
+      }
+      std::this_thread::yield();
+    }
+  });
+  for (int i = 0; i < 6; ++i) {
+    const SimFrame f = sim.Render(i);
+    ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed());
+  }
+  m.RequestPublish();
+  m.WaitPublished(m.published_generation() + 1);
+  EXPECT_GE(m.published_generation(), 1);
+  m.Finish();
+  done = true;
+  reader.join();
+  EXPECT_EQ(errors.load(), 0);
+  EXPECT_EQ(shrinks.load(), 0);
+
+  // The callback saw increasing generations, the last one being the final publish.
+  ASSERT_FALSE(generations.empty());
+  for (size_t k = 1; k < generations.size(); ++k) EXPECT_GT(generations[k], generations[k - 1]);
+  EXPECT_EQ(generations.back(), m.published_generation());
+  EXPECT_EQ(generations.back(), m.summary().generations_published);
+
+  // The window with its geotransform matches mosaic.vrt as GDAL reads it, pixel for pixel.
+  const cv::Rect bounds = m.bounds_px();
+  ASSERT_FALSE(bounds.empty());
+  const cv::Rect inner(bounds.x + 37, bounds.y + 53, bounds.width / 2, bounds.height / 2);
+  const MosaicWindow w = m.ReadWindow(inner);
+  EXPECT_EQ(w.image.type(), CV_16U);
+  EXPECT_EQ(w.image.size(), inner.size());
+  EXPECT_EQ(w.crs_wkt, m.georeference().crs_wkt);
+  const double gsd = m.georeference().gsd_m;
+  EXPECT_DOUBLE_EQ(w.geotransform[1], gsd);
+  EXPECT_DOUBLE_EQ(w.geotransform[5], -gsd);
+  const GdalRaster vrt = ReadWithGdal(options.store_path + "/mosaic.vrt", CV_16U);
+  ASSERT_FALSE(vrt.values.empty());
+  EXPECT_DOUBLE_EQ(vrt.geotransform[1], gsd);
+  // Where the window's top-left corner falls in the VRT: a whole pixel offset.
+  const double dx = (w.geotransform[0] - vrt.geotransform[0]) / gsd;
+  const double dy = (w.geotransform[3] - vrt.geotransform[3]) / -gsd;
+  EXPECT_NEAR(dx, std::round(dx), 1e-6);
+  EXPECT_NEAR(dy, std::round(dy), 1e-6);
+  const cv::Rect in_vrt(static_cast<int>(std::lround(dx)), static_cast<int>(std::lround(dy)),
+                        inner.width, inner.height);
+  ASSERT_EQ(in_vrt & cv::Rect(0, 0, vrt.values.cols, vrt.values.rows), in_vrt);
+  const int covered = cv::countNonZero(w.coverage);
+  EXPECT_GT(covered, inner.area() / 4);
+  cv::Mat differ;
+  cv::compare(w.image, vrt.values(in_vrt), differ, cv::CMP_NE);
+  EXPECT_EQ(cv::countNonZero(differ & w.coverage), 0);
+  cv::Mat alpha_set = vrt.alpha(in_vrt) > 0;
+  cv::Mat coverage_differs;
+  cv::compare(alpha_set, w.coverage, coverage_differs, cv::CMP_NE);
+  EXPECT_EQ(cv::countNonZero(coverage_differs), 0);
+
+  // One record per placed frame; its footprint is the placement's image corners on the plane,
+  // as of the last render (a frame is re-rendered when it moved more than
+  // rerender_threshold_px, so the record lags the placement by less than that).
+  const std::vector<FrameRecord> records = m.FrameRecords();
+  const std::vector<FramePlacement> placements = m.Placements();
+  ASSERT_EQ(records.size(), 6u);
+  ASSERT_EQ(placements.size(), 6u);
+  const std::array<Eigen::Vector2d, 4> corners = {
+      Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(639.5, -0.5), Eigen::Vector2d(639.5, 511.5),
+      Eigen::Vector2d(-0.5, 511.5)};
+  for (size_t k = 0; k < records.size(); ++k) {
+    EXPECT_EQ(records[k].index, placements[k].index);
+    EXPECT_EQ(records[k].pos_only, placements[k].pos_only);
+    for (int c = 0; c < 4; ++c) {
+      const Eigen::Vector2d px = ApplyHomography(placements[k].mosaic_from_image, corners[c]);
+      const Eigen::Vector2d plane(px.x() * gsd, -px.y() * gsd);
+      EXPECT_LT((records[k].footprint_m[c] - plane).norm() / gsd,
+                options.fusion.rerender_threshold_px + 0.01)
+          << "frame " << k << " corner " << c;
+    }
+  }
+  fs::remove_all(options.store_path);
 }
 
 }  // namespace

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <array>
 #include <cstdint>
 #include <functional>
 #include <limits>
@@ -18,13 +19,15 @@
 namespace irmosaic {
 
 // Configuration of a whole mosaicking run: frames + POS in, a live georeferenced store out.
+// Checked by the Mosaicker constructor (IsValid); an invalid value throws InputError naming it.
 struct MosaickerOptions {
   std::string store_path;  // The output store folder (e.g. out/flight.irmosaic).
   TileStoreOptions::Mode mode = TileStoreOptions::Mode::kCreate;
   // Mosaic ground sample distance, metres; 0: the camera's nadir GSD at the first frame's
   // height above the ground (rounded to 3 significant digits).
   double gsd_m = 0.0;
-  // Flight origin (the mosaic plane's tangent point); NaN: the first POS record.
+  // Flight origin (the mosaic plane's tangent point); NaN: the first POS record. With an
+  // empty POS track (poses given to Push) the origin and gsd_m must be set.
   double origin_lat_deg = std::numeric_limits<double>::quiet_NaN();
   double origin_lon_deg = std::numeric_limits<double>::quiet_NaN();
   double ground_height_m = 0.0;         // Ellipsoidal height of the ground.
@@ -33,8 +36,8 @@ struct MosaickerOptions {
   double search_radius_px = 64.0;       // SCD search around the POS prediction.
   double max_range_m = 30000.0;         // Rays longer than this: frame refused.
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
-  int tile_size = 512;
-  std::string compression = "ZSTD";
+  int tile_size = 512;                  // Store tile side, pixels: a multiple of 16 in [64, 8192].
+  std::string compression = "ZSTD";     // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.
@@ -49,6 +52,19 @@ struct PushResult {
   FramePlacement placement;  // Valid when placed.
   bool placed() const { return status == Status::kPlaced; }
 };
+
+// A level-0 window of the current mosaic with what GDAL needs to georeference it.
+struct MosaicWindow {
+  cv::Rect mosaic_px;                       // The window, mosaic pixels (may reach past the data).
+  cv::Mat image;                            // Store pixel type (CV_8U/16U/32F), one channel.
+  cv::Mat coverage;                         // CV_8U: 255 where painted, 0 elsewhere.
+  std::array<double, 6> geotransform = {};  // GDAL geotransform, mosaic CRS metres.
+  std::string crs_wkt;                      // The mosaic CRS (local tangent plane), WKT.
+};
+
+// GDAL geotransform of a level-0 window whose top-left pixel is mosaic pixel top_left_px: pixel
+// (col, row) is centred on plane (col*gsd, -row*gsd), so its corner is half a pixel off.
+IRMOSAIC_EXPORT std::array<double, 6> WindowGeoTransform(double gsd_m, cv::Point top_left_px);
 
 // Figures of a run so far.
 struct MosaickerSummary {
@@ -71,21 +87,36 @@ struct MosaickerSummary {
 // optimizer, and the live tiled store. Used by `irmosaic run` and by GIS pipelines.
 //
 //   Mosaicker m(options, CameraModel::LoadJson("camera.json"), PosTrack::LoadCsv("pos.csv"));
+//   m.OnPublished([](int64_t generation) { ... });  // optional: each generation on disk
 //   for (...) m.Push(index, time_s, image);   // images: CV_8U, CV_16U or CV_32F, one channel
+//   MosaicWindow w = m.ReadWindow(m.bounds_px());  // any time after the first placed frame
 //   m.Finish();                               // last solve, final publish
 //
-// Thread-safety: Push/Finish from one thread; summary()/Placements() from any.
+// Ownership: the Mosaicker owns copies of the options, camera and POS track, the images it
+// keeps (pushed images are copied; the caller's buffer may be reused at once), its two
+// background threads (fusion optimizer, store writer) and the store; the destructor joins the
+// threads (call Finish() first for a final publish). Results (PushResult, MosaicWindow,
+// placements, records) are values the caller owns.
+// Thread-safety: Push, SetReplay, RequestPublish and Finish from one thread at a time (the
+// "producer"); summary(), Placements(), FrameRecords(), ReadWindow(), bounds_px(),
+// published_generation() and WaitPublished() from any thread, concurrently with the producer.
 class IRMOSAIC_EXPORT Mosaicker {
  public:
-  // Throws InputError on invalid options; the store opens at the first placed frame.
+  // Throws InputError on invalid options (message names the option) or when the origin and
+  // GSD cannot be found (empty POS track without them); the store opens at the first placed
+  // frame (at once in resume mode).
   Mosaicker(MosaickerOptions options, CameraModel camera, PosTrack pos);
   ~Mosaicker();
   Mosaicker(const Mosaicker&) = delete;
   Mosaicker& operator=(const Mosaicker&) = delete;
 
-  // Places a frame taken at time_s (POS clock). A frame that cannot be placed is skipped with
-  // a reason (never an exception for bad frames); store errors throw OutputError.
+  // Places a frame taken at time_s, its pose interpolated in the POS track. A frame that
+  // cannot be placed is skipped with a reason (never an exception for bad frames); store
+  // errors throw OutputError.
   PushResult Push(int64_t index, double time_s, const cv::Mat& image);
+  // Same with the frame's pose given directly (e.g. from a live POS stream; PoseFromRecord
+  // converts a PosRecord); the POS track is not consulted.
+  PushResult Push(int64_t index, double time_s, const Pose& pose, const cv::Mat& image);
 
   // While true, pushed frames rebuild the fusion state but are not painted (resume replay).
   void SetReplay(bool replay);
@@ -96,14 +127,41 @@ class IRMOSAIC_EXPORT Mosaicker {
   // Asks the store to publish now (non-blocking).
   void RequestPublish();
 
+  // Called with each newly published generation number (a generation is a consistent state
+  // of mosaic.vrt, manifest.json, tiles and frames.gpkg on disk). Runs on the producer thread,
+  // at the end of Push/Finish/RequestPublish, for generations published since the last call
+  // (several publishes may coalesce into one call with the latest); never concurrently.
+  // An exception it throws propagates out of that call. Empty function: none.
+  void OnPublished(std::function<void(int64_t generation)> callback);
+  // Poll: generation of the last publish on disk (0: nothing published yet).
+  int64_t published_generation() const;
+  // Blocks until generation `generation` is on disk (e.g. published_generation() + 1 after
+  // RequestPublish()); throws OutputError if the store failed or closed before it.
+  void WaitPublished(int64_t generation);
+
   // Index of the last frame in the published application state of a resumed store (-1: none).
   int64_t resumed_last_index() const;
 
   MosaickerSummary summary() const;
+  // Placement of every frame placed so far (latest estimate, refined by the optimizer).
   std::vector<FramePlacement> Placements() const;
+  // Per-frame records as the store keeps them in frames.gpkg (footprint on the mosaic plane,
+  // registration quality); empty before the first placed frame.
+  std::vector<FrameRecord> FrameRecords() const;
   // Writes the placements JSON (docs/formats.md) that `irmosaic eval` scores.
   void WritePlacements(const std::string& path) const;
-  // The store (null before the first placed frame).
+
+  // Painted level-0 extent, mosaic pixels (empty before the first placed frame).
+  cv::Rect bounds_px() const;
+  // The current mosaic in a level-0 window (as painted, published or not) with its GDAL
+  // geotransform and CRS. Throws InputError before the first placed frame or for a window
+  // not in 1..65536 pixels a side.
+  MosaicWindow ReadWindow(const cv::Rect& mosaic_px) const;
+  // The mosaic's georeference (origin, GSD, CRS WKT); known from construction.
+  const StoreGeoreference& georeference() const;
+
+  // The store (null before the first placed frame); owned by the Mosaicker. Thread-safe calls
+  // only (TileStore documents which).
   TileStore* store();
 
  private:

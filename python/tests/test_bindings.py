@@ -220,3 +220,106 @@ def test_unwritable_store_raises_output_error(flight):
         m.push(index, time_s, image)
     assert isinstance(info.value, OSError)
     assert "/proc/irmosaic" in str(info.value)
+
+
+# The rest of the library API: poses pushed directly, published generations, frame records.
+
+def test_frame_records_match_the_placements(run):
+    m, truth, _, _ = run
+    records = m.frame_records()
+    placements = {p["index"]: p for p in m.placements()}
+    assert [r["index"] for r in records] == list(range(FRAMES))
+    gsd = truth["gsd_m"]
+    corners = [(-0.5, -0.5), (639.5, -0.5), (639.5, 511.5), (-0.5, 511.5)]
+    for r in records:
+        p = placements[r["index"]]
+        assert r["footprint_m"].shape == (4, 2)
+        assert r["status"] == ("pos_only" if p["pos_only"] else "registered")
+        assert r["pos_only"] == p["pos_only"]
+        # The footprint is the placement's corners on the plane (x = col*gsd, y = -row*gsd) as
+        # of the frame's last render, which lags the placement by < rerender_threshold_px.
+        for k, (x, y) in enumerate(corners):
+            col, row = apply_h(p["mosaic_from_image"], x, y)
+            error_px = np.linalg.norm(r["footprint_m"][k] - (col * gsd, -row * gsd)) / gsd
+            assert error_px < 0.26, (r["index"], k, error_px)
+
+
+def test_poses_pushed_directly_need_no_pos_track(run, flight, tmp_path):
+    tracked, truth, results, _ = run
+    camera = irmosaic.CameraModel.load_json(str(flight / "camera.json"))
+    records = irmosaic.PosTrack.load_csv(str(flight / "pos.csv")).records()
+    options = irmosaic.MosaickerOptions(str(tmp_path / "posed.irmosaic"))
+    with pytest.raises(irmosaic.InputError, match="origin_lat_deg, origin_lon_deg and gsd_m"):
+        irmosaic.Mosaicker(options, camera)
+    options.origin_lat_deg = truth["origin"]["lat_deg"]
+    options.origin_lon_deg = truth["origin"]["lon_deg"]
+    options.gsd_m = truth["gsd_m"]
+    m = irmosaic.Mosaicker(options, camera)  # no POS track: poses come with the frames
+    frames = read_frames(flight)[:4]
+    for (index, time_s, image), record in zip(frames, records):
+        pose = {k: v for k, v in record.items() if k != "time_s"}
+        r = m.push(index, time_s, image, pose=pose)
+        assert r["placed"], r["reason"]
+        # The same POS prediction as the track's (sampled at the frame time), to 1e-3 px.
+        expected = results[index]["placement"]["pos_mosaic_from_image"]
+        for x, y in [(0.0, 0.0), (639.0, 511.0)]:
+            assert np.linalg.norm(apply_h(r["placement"]["pos_mosaic_from_image"], x, y) -
+                                  apply_h(expected, x, y)) < 1e-3
+    with pytest.raises(KeyError, match="yaw_deg"):
+        m.push(9, 0.0, frames[0][2], pose={"lat_deg": 47.2, "lon_deg": 8.5, "height_m": 800.0,
+                                           "roll_deg": 0.0, "pitch_deg": 0.0})
+    broken = dict(records[0], lat_deg=float("nan"))
+    skipped = m.push(9, 0.0, frames[0][2], pose=broken)
+    assert not skipped["placed"] and "pose is not finite" in skipped["reason"]
+    m.finish()
+    assert m.summary()["frames_placed"] == 4
+
+
+def test_published_generations_reach_the_callback(flight, tmp_path):
+    camera = irmosaic.CameraModel.load_json(str(flight / "camera.json"))
+    pos = irmosaic.PosTrack.load_csv(str(flight / "pos.csv"))
+    options = irmosaic.MosaickerOptions(str(tmp_path / "g.irmosaic"))
+    options.publish_interval_s = 0.001
+    m = irmosaic.Mosaicker(options, camera, pos)
+    assert m.published_generation() == 0
+    with pytest.raises(TypeError, match="callable"):
+        m.on_published(42)
+    generations = []
+    m.on_published(generations.append)
+    for index, time_s, image in read_frames(flight)[:4]:
+        assert m.push(index, time_s, image)["placed"]
+    m.request_publish()
+    m.wait_published(m.published_generation() + 1)
+    assert m.published_generation() >= 1
+    m.finish()
+    assert generations, "no generation reported"
+    assert generations == sorted(set(generations))
+    assert generations[-1] == m.published_generation() == m.summary()["generations_published"]
+    # The published store is what GDAL reads: its frames.gpkg has the four frames.
+    ds = gdal.OpenEx(str(tmp_path / "g.irmosaic" / "frames.gpkg"), gdal.OF_VECTOR)
+    assert ds.GetLayer(0).GetFeatureCount() == 4
+
+
+def test_callback_errors_propagate(flight, tmp_path):
+    camera = irmosaic.CameraModel.load_json(str(flight / "camera.json"))
+    pos = irmosaic.PosTrack.load_csv(str(flight / "pos.csv"))
+    m = irmosaic.Mosaicker(irmosaic.MosaickerOptions(str(tmp_path / "e.irmosaic")), camera, pos)
+    index, time_s, image = read_frames(flight)[0]
+    assert m.push(index, time_s, image)["placed"]
+    m.on_published(lambda generation: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        m.finish()  # the final publish always reports a new generation
+
+
+def test_invalid_tile_size_is_refused_with_its_name(tmp_path, flight):
+    camera = irmosaic.CameraModel.load_json(str(flight / "camera.json"))
+    pos = irmosaic.PosTrack.load_csv(str(flight / "pos.csv"))
+    options = irmosaic.MosaickerOptions(str(tmp_path / "t.irmosaic"))
+    options.tile_size = 100
+    with pytest.raises(irmosaic.InputError, match="tile_size 100"):
+        irmosaic.Mosaicker(options, camera, pos)
+    options.tile_size = 512
+    options.compression = "JPEG"
+    with pytest.raises(irmosaic.InputError, match="compression"):
+        irmosaic.Mosaicker(options, camera, pos)
+    assert not (tmp_path / "t.irmosaic").exists()
