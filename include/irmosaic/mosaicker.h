@@ -1,6 +1,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <limits>
@@ -86,6 +87,10 @@ class IRMOSAIC_EXPORT Mosaicker {
   // Places a frame taken at time_s (POS clock). A frame that cannot be placed is skipped with
   // a reason (never an exception for bad frames); store errors throw OutputError.
   PushResult Push(int64_t index, double time_s, const cv::Mat& image);
+  // As Push, for a frame that arrived from the sensor at `arrival` (earlier than now when it
+  // waited in a queue): the publish latency counts from then.
+  PushResult Push(int64_t index, double time_s, const cv::Mat& image,
+                  std::chrono::steady_clock::time_point arrival);
 
   // While true, pushed frames rebuild the fusion state but are not painted (resume replay).
   void SetReplay(bool replay);
