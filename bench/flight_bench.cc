@@ -190,8 +190,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   const double rss_start = StatusMiB("VmRSS");
   const double cpu0 = ProcessCpuSeconds();
   nlohmann::json checkpoints = nlohmann::json::array();
-  std::vector<int> marks = {std::max(1, config.frames / 10), std::max(1, config.frames / 2),
-                            config.frames};
+  std::vector<int> marks;  // Every 10 % of the flight.
+  for (int k = 1; k <= 10; ++k) marks.push_back(std::max(1, config.frames * k / 10));
   size_t next_mark = 0;
   int64_t placed = 0, pushed = 0;
   double last_wall = 0.0, last_cpu = 0.0, producer_cpu = 0.0, push_wall_s = 0.0;
@@ -223,6 +223,12 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              {"rss_mib", StatusMiB("VmRSS")},
              {"peak_rss_mib", StatusMiB("VmHWM")},
              {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames}});
+        const auto& c = checkpoints.back();
+        std::cerr << "flight_bench: " << pushed << "/" << config.frames << " frames, "
+                  << c["segment_frames_per_s"].get<double>() << " frames/s, "
+                  << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame, RSS "
+                  << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
+                  << ")" << std::endl;
         last_wall = wall;
         last_cpu = cpu;
         last_frames = static_cast<int>(pushed);
@@ -262,6 +268,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"publish_latency_max_s", s.publish_latency_max_s},
             {"generations_published", s.generations_published},
             {"writer_busy_ms_per_frame", st.writer_busy_ms / config.frames},
+            {"writer_cpu_ms_per_frame", st.writer_cpu_ms / config.frames},
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
             {"tiles_written", st.tiles_written},
             {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
@@ -293,6 +300,8 @@ std::vector<cv::Mat> EightBitFrames(int frames) {
 
 nlohmann::json RunStitcher(int frames) {
   std::vector<cv::Mat> images = EightBitFrames(frames);
+  // The Stitcher's seam finder takes three channels only.
+  for (cv::Mat& image : images) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
   const auto start = Clock::now();
   cv::Ptr<cv::Stitcher> stitcher = cv::Stitcher::create(cv::Stitcher::SCANS);
   cv::Mat pano;
@@ -303,7 +312,9 @@ nlohmann::json RunStitcher(int frames) {
   return {{"method", "cv::Stitcher SCANS"},
           {"frames", frames},
           {"seconds", seconds},
-          {"success", status == cv::Stitcher::OK},
+          // Success: every frame in the panorama (the Stitcher drops frames it cannot match).
+          {"success",
+           status == cv::Stitcher::OK && static_cast<int>(stitcher->component().size()) == frames},
           {"status", names[static_cast<int>(status)]},
           {"frames_in_result", stitcher->component().size()},
           {"output_px", static_cast<double>(pano.total())}};
@@ -440,7 +451,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                              : "crashed (exit status " + std::to_string(status) + ")"},
         {"seconds", Since(start)}};
   }
-  result["peak_rss_mib"] = static_cast<double>(usage.ru_maxrss) / 1024.0;
+  result["peak_rss_mib"] = result.contains("own_peak_rss_mib")
+                               ? result["own_peak_rss_mib"].get<double>()
+                               : static_cast<double>(usage.ru_maxrss) / 1024.0;
   result["cpu_s"] = Seconds({usage.ru_utime.tv_sec, usage.ru_utime.tv_usec * 1000}) +
                     Seconds({usage.ru_stime.tv_sec, usage.ru_stime.tv_usec * 1000});
   return result;
@@ -532,6 +545,8 @@ int main(int argc, char** argv) {
                 {"success", r["frames_placed"] == frames},
                 {"frames_registered", r["frames_registered"]}};
     }
+    // Its own peak (VmHWM after exec); wait4's ru_maxrss starts from the parent's.
+    result["own_peak_rss_mib"] = StatusMiB("VmHWM");
     std::ofstream(json_path) << result.dump(2) << "\n";
     return 0;
   }
@@ -541,37 +556,40 @@ int main(int argc, char** argv) {
   doc["machine"] = MachineLine();
   std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
 
-  RunConfig free_run;
-  free_run.frames = frames;
-  free_run.store = store + "/free";
-  free_run.optimize = optimize;
-  const nlohmann::json f = RunMosaicker(free_run);
-  doc["free"] = f;
-  std::cout << "\nAs fast as possible, " << frames << " frames (" << (optimize ? "with" : "without")
-            << " the optimizer):\n"
-            << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
-            << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(10)
-            << "RSS MiB" << std::setw(11) << "peak MiB"
-            << "\n";
-  for (const auto& c : f["checkpoints"]) {
-    std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
-              << std::setw(10) << Fixed(c["wall_s"], 1) << std::setw(12)
-              << Fixed(c["segment_frames_per_s"], 1) << std::setw(14)
-              << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(10) << Fixed(c["rss_mib"], 0)
-              << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+  if (frames > 0) {
+    RunConfig free_run;
+    free_run.frames = frames;
+    free_run.store = store + "/free";
+    free_run.optimize = optimize;
+    const nlohmann::json f = RunMosaicker(free_run);
+    doc["free"] = f;
+    std::cout << "\nAs fast as possible, " << frames << " frames ("
+              << (optimize ? "with" : "without") << " the optimizer):\n"
+              << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
+              << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(10)
+              << "RSS MiB" << std::setw(11) << "peak MiB"
+              << "\n";
+    for (const auto& c : f["checkpoints"]) {
+      std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
+                << std::setw(10) << Fixed(c["wall_s"], 1) << std::setw(12)
+                << Fixed(c["segment_frames_per_s"], 1) << std::setw(14)
+                << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(10)
+                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+    }
+    std::cout << "total: " << Fixed(f["frames_per_s"], 1) << " frames/s wall (foreground "
+              << Fixed(f["foreground_frames_per_s"], 1) << ", finish " << Fixed(f["finish_s"], 1)
+              << " s), pipeline CPU " << Fixed(f["pipeline_cpu_ms_per_frame"], 1)
+              << " ms/frame (renderer " << Fixed(f["renderer_cpu_ms_per_frame"], 1)
+              << " ms/frame excluded), publish latency p50 " << Fixed(f["publish_latency_p50_s"], 3)
+              << " s p99 " << Fixed(f["publish_latency_p99_s"], 3) << " s, peak RSS "
+              << Fixed(f["peak_rss_mib"], 0) << " MiB\n"
+              << "output: writer CPU " << Fixed(f["writer_cpu_ms_per_frame"], 2)
+              << " ms/frame (own thread; wall busy " << Fixed(f["writer_busy_ms_per_frame"], 2)
+              << "), paint " << Fixed(f["paint_ms_per_frame"], 2) << " ms/frame, store "
+              << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
+              << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
+              << f["frames_pos_only"].get<int64_t>() << "\n";
   }
-  std::cout << "total: " << Fixed(f["frames_per_s"], 1) << " frames/s wall (foreground "
-            << Fixed(f["foreground_frames_per_s"], 1) << ", finish " << Fixed(f["finish_s"], 1)
-            << " s), pipeline CPU " << Fixed(f["pipeline_cpu_ms_per_frame"], 1)
-            << " ms/frame (renderer " << Fixed(f["renderer_cpu_ms_per_frame"], 1)
-            << " ms/frame excluded), publish latency p50 " << Fixed(f["publish_latency_p50_s"], 3)
-            << " s p99 " << Fixed(f["publish_latency_p99_s"], 3) << " s, peak RSS "
-            << Fixed(f["peak_rss_mib"], 0) << " MiB\n"
-            << "output: writer " << Fixed(f["writer_busy_ms_per_frame"], 2)
-            << " ms/frame (own thread), paint " << Fixed(f["paint_ms_per_frame"], 2)
-            << " ms/frame, store " << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
-            << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
-            << f["frames_pos_only"].get<int64_t>() << "\n";
 
   if (paced_frames > 0) {
     RunConfig paced;
@@ -587,8 +605,8 @@ int main(int argc, char** argv) {
               << Fixed(p["publish_latency_p50_s"], 3) << " s, p99 "
               << Fixed(p["publish_latency_p99_s"], 3) << " s, max "
               << Fixed(p["publish_latency_max_s"], 3) << " s; pipeline CPU "
-              << Fixed(p["pipeline_cpu_ms_per_frame"], 1) << " ms/frame; writer "
-              << Fixed(p["writer_busy_ms_per_frame"], 2) << " ms/frame\n";
+              << Fixed(p["pipeline_cpu_ms_per_frame"], 1) << " ms/frame; writer CPU "
+              << Fixed(p["writer_cpu_ms_per_frame"], 2) << " ms/frame\n";
   }
 
   if (!compare.empty()) {

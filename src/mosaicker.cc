@@ -58,6 +58,7 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (!(search_radius_px >= 4.0 && search_radius_px <= 1024.0))
     return fail("search_radius_px must be in [4, 1024]");
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
+  if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   std::string fusion_error;
   if (!fusion.IsValid(&fusion_error)) return fail("fusion: " + fusion_error);
@@ -298,6 +299,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.mode = options_.mode;
     store_options.tile_size = options_.tile_size;
     store_options.compression = options_.compression;
+    store_options.overview_interval_s = options_.overview_interval_s;
     store_options.pixel_type = type;
     store_ = TileStore::Open(store_options, georef_);
     if (options_.mode == TileStoreOptions::Mode::kResume) {

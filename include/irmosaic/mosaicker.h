@@ -34,6 +34,8 @@ struct MosaickerOptions {
   double search_radius_px = 64.0;       // SCD search around the POS prediction.
   double max_range_m = 30000.0;         // Rays longer than this: frame refused.
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
+  // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
+  double overview_interval_s = 2.0;
   int tile_size = 512;
   std::string compression = "ZSTD";
   FusionOptions fusion;
