@@ -152,6 +152,7 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
+  if (max_rerenders_per_solve < 0) return fail("max_rerenders_per_solve must be >= 0");
   return true;
 }
 
@@ -291,6 +292,7 @@ class MapFusion::Impl {
     {
       std::lock_guard<std::mutex> lock(mu_);
       frame->slot = placements_.size();
+      frame->rendered = placement;
       placements_.push_back(placement);
       window_.push_back(frame);
       for (Pair& p : new_pairs) pairs_.push_back(std::move(p));
@@ -343,6 +345,7 @@ class MapFusion::Impl {
     Eigen::Matrix<double, 10, 10> prior_sqrt_information;
     size_t slot = 0;
     std::vector<cv::Point2f> pos_footprint;
+    FramePlacement rendered;  // As last painted (under mu_): re-renders compare with it.
   };
   struct Pair {
     std::shared_ptr<Held> base, templ;
@@ -403,11 +406,62 @@ class MapFusion::Impl {
     ortho->Run(frame.data.image, placement.mosaic_from_image, &out);
     cv::Mat compensated;
     out.image.convertTo(compensated, out.image.type(), placement.gain, placement.offset);
-    cv::Mat distance, weight;
-    cv::distanceTransform(out.mask, distance, cv::DIST_L2, cv::DIST_MASK_3, CV_32F);
-    distance.convertTo(weight, CV_32F, 1.0 / options_.feather_px);
-    cv::min(weight, 1.0, weight);
+    cv::Mat weight;
+    if (camera_.HasDistortion()) {
+      cv::Mat distance;
+      cv::distanceTransform(out.mask, distance, cv::DIST_L2, cv::DIST_MASK_3, CV_32F);
+      distance.convertTo(weight, CV_32F, 1.0 / options_.feather_px);
+      cv::min(weight, 1.0, weight);
+    } else {
+      FeatherWeight(out, &weight);
+    }
     sink_->Paint(compensated, weight, out.origin_px);
+  }
+
+  // Seam weight of an undistorted frame: its footprint is the convex quadrilateral of the
+  // outer pixel edges, where the distance to the border is the least distance to the four
+  // edge lines (exact, where distanceTransform approximates it over a whole-image pass):
+  // weight = min(1, (distance + 0.5) / feather_px) inside the mask, as distanceTransform
+  // measured to the centre of the first pixel outside.
+  void FeatherWeight(const OrthoImage& out, cv::Mat* weight) const {
+    const double w = camera_.width, h = camera_.height;
+    std::array<Eigen::Vector2d, 4> q;
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(w - 0.5, -0.5),
+        Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
+    for (int k = 0; k < 4; ++k) q[k] = ApplyHomography(out.ortho_from_image, corners[k]);
+    double area2 = 0.0;
+    for (int k = 0; k < 4; ++k) {
+      const Eigen::Vector2d& a = q[k];
+      const Eigen::Vector2d& b = q[(k + 1) % 4];
+      area2 += a.x() * b.y() - b.x() * a.y();
+    }
+    const double orientation = area2 >= 0.0 ? 1.0 : -1.0;
+    // Per edge: (distance + 0.5) / feather = ax * x + ay * y + c, inward positive.
+    std::array<float, 4> ax, ay, c;
+    const double inv_feather = 1.0 / options_.feather_px;
+    for (int k = 0; k < 4; ++k) {
+      const Eigen::Vector2d d = q[(k + 1) % 4] - q[k];
+      const double len = std::max(d.norm(), 1e-9);
+      const Eigen::Vector2d inward = orientation * Eigen::Vector2d(-d.y(), d.x()) / len;
+      ax[k] = static_cast<float>(inward.x() * inv_feather);
+      ay[k] = static_cast<float>(inward.y() * inv_feather);
+      c[k] = static_cast<float>((0.5 - inward.dot(q[k])) * inv_feather);
+    }
+    weight->create(out.mask.size(), CV_32F);
+    for (int y = 0; y < weight->rows; ++y) {
+      float* row = weight->ptr<float>(y);
+      const uint8_t* inside = out.mask.ptr<uint8_t>(y);
+      std::array<float, 4> base;
+      for (int k = 0; k < 4; ++k) base[k] = ay[k] * static_cast<float>(y) + c[k];
+      for (int x = 0; x < weight->cols; ++x) {
+        const float fx = static_cast<float>(x);
+        float v = std::min(std::min(ax[0] * fx + base[0], ax[1] * fx + base[1]),
+                           std::min(ax[2] * fx + base[2], ax[3] * fx + base[3]));
+        v = std::min(std::max(v, 0.0f), 1.0f);
+        row[x] = inside[x] ? v : 0.0f;
+      }
+    }
   }
 
   void StopThread() {
@@ -545,11 +599,11 @@ class MapFusion::Impl {
 
     // Publish, then re-render frames that moved.
     std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> moved;
+    std::vector<std::pair<double, size_t>> candidates;  // (score, index in moved)
     {
       std::lock_guard<std::mutex> lock(mu_);
       for (const auto& f : frames) {
         FramePlacement& live = placements_[f->slot];
-        const Eigen::Matrix3d before = live.mosaic_from_image;
         // Frames placed while we solved were chained from the old placement of their
         // neighbour; carry the correction of the frame itself when it was in the snapshot.
         live.mosaic_from_image = solved[f->slot];
@@ -557,16 +611,32 @@ class MapFusion::Impl {
         if (residual[f->slot].second > 0) {
           live.residual_px = std::sqrt(residual[f->slot].first / residual[f->slot].second);
         }
-        const double old_gain = live.gain, old_offset = live.offset;
         if (gains.count(f->slot)) std::tie(live.gain, live.offset) = gains[f->slot];
+        // Compared with the frame as painted, so small moves that add up are re-rendered too.
+        const FramePlacement& painted = f->rendered;
         const double value_scale = std::max(1.0, std::abs(live.offset) + 1000.0);
-        const bool radiometry_moved = std::abs(live.gain - old_gain) > 0.01 ||
-                                      std::abs(live.offset - old_offset) > 0.01 * value_scale;
-        if (CornerShift(before, live.mosaic_from_image, camera_) > options_.rerender_threshold_px ||
-            radiometry_moved) {
+        const double radiometry =
+            std::max(std::abs(live.gain - painted.gain) / 0.01,
+                     std::abs(live.offset - painted.offset) / (0.01 * value_scale));
+        const double shift =
+            CornerShift(painted.mosaic_from_image, live.mosaic_from_image, camera_) /
+            std::max(options_.rerender_threshold_px, 1e-9);
+        const double score = std::max(shift, radiometry);
+        if (score > 1.0) {
+          candidates.emplace_back(score, moved.size());
           moved.emplace_back(f, live);
         }
       }
+      // Within the budget, the frames that moved most (in units of the thresholds).
+      const size_t budget = static_cast<size_t>(options_.max_rerenders_per_solve);
+      if (!final_solve && budget > 0 && moved.size() > budget) {
+        std::stable_sort(candidates.begin(), candidates.end(),
+                         [](const auto& a, const auto& b) { return a.first > b.first; });
+        std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> kept;
+        for (size_t k = 0; k < budget; ++k) kept.push_back(moved[candidates[k].second]);
+        moved = std::move(kept);
+      }
+      for (auto& [frame, placement] : moved) frame->rendered = placement;
       const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
       stats_.solves += 1;
       stats_.last_solve_ms = ms;

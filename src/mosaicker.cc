@@ -62,6 +62,7 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (!(search_radius_px >= 4.0 && search_radius_px <= 1024.0))
     return fail("search_radius_px must be in [4, 1024]");
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
+  if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
     return fail("origin_lat_deg and origin_lon_deg: set both or neither (NaN: the first POS)");
@@ -135,8 +136,8 @@ class Mosaicker::Impl : public MosaicSink {
     fusion_.reset();  // Joins the optimizer before the store goes.
   }
 
-  PushResult Push(int64_t index, double time_s, const Pose* given_pose, const cv::Mat& image) {
-    const auto arrival = Clock::now();
+  PushResult Push(int64_t index, double time_s, const Pose* given_pose, const cv::Mat& image,
+                  Clock::time_point arrival) {
     PushResult result;
     Count(&MosaickerSummary::frames_pushed);
     auto skip = [&](const std::string& reason) {
@@ -184,11 +185,18 @@ class Mosaicker::Impl : public MosaicSink {
     frame.time_s = time_s;
     frame.image = image.clone();
     frame.pos_mosaic_from_image = geometry.mosaic_from_image;
+    auto ortho = std::make_shared<OrthoImage>();
     try {
-      ortho_.Run(image, geometry.mosaic_from_image, &frame.pos_ortho);
+      ortho_.Run(image, geometry.mosaic_from_image, ortho.get());
     } catch (const InputError& e) {
       return skip(e.problem());
     }
+    // The fusion keeps its window's frames for minutes; their POS orthoimages (several times
+    // the frame's size, oblique) serve only registration to the next frames, so they live in
+    // a small cache here and the fusion's copy carries only the geometry.
+    frame.pos_ortho.origin_px = ortho->origin_px;
+    frame.pos_ortho.ortho_from_image = ortho->ortho_from_image;
+    RememberOrtho(index, std::move(ortho));
     frame.prior_sqrt_information = PosPriorSqrtInformation(camera_, pose.pose, *frame_, grid_,
                                                            ground_, options_.pos_position_sigma_m,
                                                            options_.pos_attitude_sigma_deg, 0.2);
@@ -389,6 +397,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.mode = options_.mode;
     store_options.tile_size = options_.tile_size;
     store_options.compression = options_.compression;
+    store_options.overview_interval_s = options_.overview_interval_s;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
     {
@@ -406,30 +415,54 @@ class Mosaicker::Impl : public MosaicSink {
     }
   }
 
+  // Keeps a frame's POS orthoimage for registration to the frames after it (bounded).
+  void RememberOrtho(int64_t index, std::shared_ptr<const OrthoImage> ortho) {
+    std::lock_guard<std::mutex> lock(ortho_mu_);
+    ortho_cache_.emplace_back(index, std::move(ortho));
+    while (ortho_cache_.size() > kOrthoCacheFrames) ortho_cache_.pop_front();
+  }
+
+  // The POS orthoimage of a fusion frame: cached, or rebuilt (the same pixels) when it left
+  // the cache, e.g. a neighbour from an earlier pass over the same ground.
+  std::shared_ptr<const OrthoImage> PosOrtho(const FusionFrame& frame) {
+    {
+      std::lock_guard<std::mutex> lock(ortho_mu_);
+      for (auto it = ortho_cache_.rbegin(); it != ortho_cache_.rend(); ++it) {
+        if (it->first == frame.index) return it->second;
+      }
+    }
+    auto ortho = std::make_shared<OrthoImage>();
+    ortho_.Run(frame.image, frame.pos_mosaic_from_image, ortho.get());
+    return ortho;
+  }
+
   // SCD + fast LSM + RANSAC between the POS orthoimages; tie points back to image pixels.
-  PairMatch Register(const FusionFrame& base, const FusionFrame& templ) {
+  PairMatch Register(const FusionFrame& base_frame, const FusionFrame& templ_frame) {
     PairMatch match;
-    const Eigen::Vector2d predicted(templ.pos_ortho.origin_px.x - base.pos_ortho.origin_px.x,
-                                    templ.pos_ortho.origin_px.y - base.pos_ortho.origin_px.y);
-    const PairRegistration r =
-        registrar_->Register(base.pos_ortho.image, base.pos_ortho.mask, templ.pos_ortho.image,
-                             templ.pos_ortho.mask, predicted, options_.search_radius_px);
+    const std::shared_ptr<const OrthoImage> base_ortho = PosOrtho(base_frame);
+    const std::shared_ptr<const OrthoImage> templ_ortho = PosOrtho(templ_frame);
+    const OrthoImage& base = *base_ortho;
+    const OrthoImage& templ = *templ_ortho;
+    const Eigen::Vector2d predicted(templ.origin_px.x - base.origin_px.x,
+                                    templ.origin_px.y - base.origin_px.y);
+    const PairRegistration r = registrar_->Register(base.image, base.mask, templ.image, templ.mask,
+                                                    predicted, options_.search_radius_px);
     if (!r.ok()) {
       match.reason = std::string(ToString(r.status)) + ": " + r.reason;
       return match;
     }
     match.ok = true;
     match.residual_rms_px = r.residual_rms_px;
-    match.base_from_template = base.pos_ortho.ortho_from_image.inverse() * r.base_from_template *
-                               templ.pos_ortho.ortho_from_image;
+    match.base_from_template =
+        base.ortho_from_image.inverse() * r.base_from_template * templ.ortho_from_image;
     // Tie points for the optimizer from the pair's homography, on a grid over the overlap
     // (both masks): evenly spread whatever the key points were, and as many as the
     // homography's own accuracy supports. Its accuracy at the overlap's corners is the joint
     // fit's predicted sigma (or the RANSAC residual); spreading that information over n
     // points inflates each point's sigma by sqrt(n / 4).
     std::vector<Eigen::Vector2d> in_template, in_base;
-    const cv::Mat& tm = templ.pos_ortho.mask;
-    const cv::Mat& bm = base.pos_ortho.mask;
+    const cv::Mat& tm = templ.mask;
+    const cv::Mat& bm = base.mask;
     constexpr int kStep = 24;
     for (int y = kStep / 2; y < tm.rows; y += kStep) {
       for (int x = kStep / 2; x < tm.cols; x += kStep) {
@@ -455,8 +488,8 @@ class Mosaicker::Impl : public MosaicSink {
     match.tie_sigma_px =
         std::max(0.05, sigma_h) * std::sqrt(static_cast<double>(in_template.size()) / 4.0);
     for (size_t k = 0; k < in_template.size(); ++k) {
-      match.template_points.push_back(ImageFromOrtho(templ.pos_ortho, in_template[k]));
-      match.base_points.push_back(ImageFromOrtho(base.pos_ortho, in_base[k]));
+      match.template_points.push_back(ImageFromOrtho(templ, in_template[k]));
+      match.base_points.push_back(ImageFromOrtho(base, in_base[k]));
     }
     return match;
   }
@@ -498,6 +531,10 @@ class Mosaicker::Impl : public MosaicSink {
   StoreGeoreference georef_;
   Orthorectifier ortho_;
   std::unique_ptr<PairRegistrar> registrar_;
+  // Frames' POS orthoimages, newest last: two sweeps of the default flight and some margin.
+  static constexpr size_t kOrthoCacheFrames = 24;
+  std::mutex ortho_mu_;
+  std::deque<std::pair<int64_t, std::shared_ptr<const OrthoImage>>> ortho_cache_;
   std::unique_ptr<TileStore> store_;
   std::unique_ptr<MapFusion> fusion_;
   bool replay_ = false;
@@ -516,10 +553,14 @@ Mosaicker::Mosaicker(MosaickerOptions options, CameraModel camera, PosTrack pos)
     : impl_(std::make_unique<Impl>(std::move(options), std::move(camera), std::move(pos))) {}
 Mosaicker::~Mosaicker() = default;
 PushResult Mosaicker::Push(int64_t index, double time_s, const cv::Mat& image) {
-  return impl_->Push(index, time_s, nullptr, image);
+  return impl_->Push(index, time_s, nullptr, image, Clock::now());
+}
+PushResult Mosaicker::Push(int64_t index, double time_s, const cv::Mat& image,
+                           std::chrono::steady_clock::time_point arrival) {
+  return impl_->Push(index, time_s, nullptr, image, arrival);
 }
 PushResult Mosaicker::Push(int64_t index, double time_s, const Pose& pose, const cv::Mat& image) {
-  return impl_->Push(index, time_s, &pose, image);
+  return impl_->Push(index, time_s, &pose, image, Clock::now());
 }
 void Mosaicker::OnPublished(std::function<void(int64_t generation)> callback) {
   impl_->OnPublished(std::move(callback));

@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <ctime>
 #include <list>
 #include <mutex>
 #include <thread>
@@ -68,6 +69,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
              (overview_levels > 0 && tile_size % (1 << overview_levels) != 0)) {
     problem = "overview_levels " + std::to_string(overview_levels) +
               " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
+  } else if (!(overview_interval_s >= 0.0) || !std::isfinite(overview_interval_s)) {
+    problem = "overview_interval_s must be >= 0 seconds";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
   } else if (writer_nice < 0 || writer_nice > 19) {
@@ -80,6 +83,13 @@ bool TileStoreOptions::IsValid(std::string* error) const {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+// CPU time of the calling thread, ms.
+double ThreadCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return 1e3 * static_cast<double>(ts.tv_sec) + 1e-6 * static_cast<double>(ts.tv_nsec);
+}
+
 double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
@@ -159,7 +169,9 @@ struct TileStore::Impl {
   int64_t failed_generation = 0;  // Last generation whose publish failed.
   std::string last_error;
   bool stop = false;
-  bool closed = false;  // Writer joined: nothing more will be published.
+  bool closing = false;         // Close() asked for the last publish: nothing may be deferred.
+  bool secondary_owed = false;  // Overviews or frames.gpkg were deferred by a publish.
+  bool closed = false;          // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
   std::vector<double> publish_latencies_ms;
   Stats stats;
@@ -167,6 +179,10 @@ struct TileStore::Impl {
   // --- Writer-thread state (only the writer touches these after Open).
   store::Manifest manifest;   // The last published manifest.
   TileSet propagate_pending;  // Level-0 tiles written by a failed publish: overviews owe them.
+  // Level-0 tiles written while overviews were deferred (their latest images), and when the
+  // overviews and frames.gpkg were last brought up to date.
+  std::map<TileIndex, TileImage> overview_owed;
+  Clock::time_point last_secondary{};
   std::map<std::pair<int, TileIndex>, TileImage> overview_cache;
   std::list<std::pair<int, TileIndex>> overview_lru;
   std::thread writer;
@@ -357,8 +373,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     tile.writing = true;
     --dirty_count;
   }
+  // Overviews and frames.gpkg at most every overview_interval_s, and always when closing.
+  const bool secondary = closing || options.overview_interval_s <= 0.0 ||
+                         std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
+                             options.overview_interval_s;
   std::vector<FrameRecord> frames_to_write;
-  frames_to_write.swap(frames_changed);
+  if (secondary) frames_to_write.swap(frames_changed);
+  secondary_owed = !secondary;
   int64_t frame_count = static_cast<int64_t>(frames.size());
   double time_min = 0.0, time_max = 0.0;
   if (!frames.empty()) {
@@ -373,6 +394,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   lock.unlock();
 
   const Clock::time_point start = Clock::now();
+  const double cpu_start_ms = ThreadCpuMs();
   int64_t bytes = 0, tiles_written = 0;
   std::string error;
   std::vector<TileIndex> snapshot;
@@ -391,18 +413,30 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       changed.notify_all();
       lock.unlock();
     }
+    // Work on a copy: the published manifest changes only once the index is written.
+    store::Manifest next = manifest;
+    for (const auto& [index, image] : level0) next.levels[0].insert(index);
+    if (!secondary) {
+      // Deferred: the latest image of each tile waits (shared buffers, no copy) for the next
+      // overview update.
+      for (auto& [index, image] : level0) overview_owed[index] = std::move(image);
+      level0.clear();
+    } else {
+      for (auto& [index, image] : overview_owed) {
+        snapshot.push_back(index);  // A failure below leaves them owed again.
+        level0.try_emplace(index, std::move(image));
+      }
+      overview_owed.clear();
+    }
     // Tiles written by a failed publish still owe their overviews.
-    for (const TileIndex& index : propagate_pending) {
+    for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
       if (!level0.count(index)) {
         level0[index] = store::ReadTile(PathOf(0, index), options.tile_size, type);
       }
     }
-    // Work on a copy: the published manifest changes only once the index is written.
-    store::Manifest next = manifest;
-    for (const auto& [index, image] : level0) next.levels[0].insert(index);
     // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
     const int old_levels = static_cast<int>(next.levels.size()) - 1;
-    const int levels = LevelsFor(next.levels[0]);
+    const int levels = secondary ? LevelsFor(next.levels[0]) : old_levels;
     next.levels.resize(levels + 1);
     std::map<TileIndex, TileImage> children = std::move(level0);
     for (int level = 1; level <= levels; ++level) {
@@ -436,7 +470,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       next.display_hi = hi;
     }
     // 4. Frames, then the index: overview VRTs, mosaic.vrt, manifest.json.
-    if (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg")) {
+    if (secondary && (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg"))) {
       store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
                              options.durable);
     }
@@ -447,8 +481,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     WriteIndex(&next, generation);
     if (range_changed) WriteQlr(next);
     manifest = std::move(next);
-    propagate_pending.clear();
-    CleanStaleFiles(manifest);
+    if (secondary) {
+      propagate_pending.clear();
+      CleanStaleFiles(manifest);
+      last_secondary = Clock::now();
+    }
   } catch (const Error& e) {
     error = e.what();
   } catch (const std::exception& e) {
@@ -456,9 +493,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   }
   if (!error.empty()) propagate_pending.insert(snapshot.begin(), snapshot.end());
   const double busy_ms = MsSince(start);
+  const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
 
   lock.lock();
   stats.writer_busy_ms += busy_ms;
+  stats.writer_cpu_ms += cpu_ms;
   stats.tiles_written += tiles_written;
   stats.bytes_written += bytes;
   if (error.empty()) {
@@ -757,7 +796,7 @@ int64_t TileStore::RequestPublish() {
   if (s.requested_generation > s.started_generation) return s.requested_generation;
   // Nothing new since the writer's last snapshot: that generation already holds it all.
   const bool changed = s.dirty_count > 0 || !s.frames_changed.empty() || s.application_dirty ||
-                       s.failed_generation >= s.started_generation;
+                       s.secondary_owed || s.failed_generation >= s.started_generation;
   if (!changed) return s.started_generation;
   ++s.requested_generation;
   s.request_time_of[s.requested_generation] = Clock::now();
@@ -817,6 +856,10 @@ void TileStore::Close() {
   Impl& s = *impl_;
   if (s.read_only || !s.writer.joinable()) return;
   std::string error;
+  {
+    std::lock_guard<std::mutex> lock(s.mutex);
+    s.closing = true;  // The last publish defers nothing.
+  }
   try {
     WaitPublished(RequestPublish());
   } catch (const Error& e) {

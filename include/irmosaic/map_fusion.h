@@ -83,12 +83,16 @@ struct FusionOptions {
   double tie_sigma_px = 0.3;            // Tie point accuracy (1 sigma, px).
   double robust_scale = 3.0;            // Cauchy loss scale, in sigmas of the tie residual.
   double rerender_threshold_px = 0.25;  // Re-render a frame that moved more than this.
-  bool optimize = true;                 // Run the global optimization thread.
-  bool compensate_gain = true;          // Per-frame gain and offset from the overlaps.
-  double gain_prior_sigma = 0.5;        // Keeps the global level: gain ~ 1 +- this.
-  int feather_px = 24;                  // Seam blending ramp width.
-  int tie_patch_radius_px = 3;          // Radiometric samples: mean of a (2r+1)^2 patch.
-  bool render = true;                   // Paint into the sink (off for geometry-only runs).
+  // Re-renders per background solve, the frames that moved most since they were painted
+  // first (0: no limit); the final solve re-renders every frame that moved. Bounds the
+  // painting and tile writing a solve causes (each re-render rewrites a few tiles).
+  int max_rerenders_per_solve = 16;
+  bool optimize = true;           // Run the global optimization thread.
+  bool compensate_gain = true;    // Per-frame gain and offset from the overlaps.
+  double gain_prior_sigma = 0.5;  // Keeps the global level: gain ~ 1 +- this.
+  int feather_px = 24;            // Seam blending ramp width.
+  int tie_patch_radius_px = 3;    // Radiometric samples: mean of a (2r+1)^2 patch.
+  bool render = true;             // Paint into the sink (off for geometry-only runs).
 
   // Returns false and a message when an option is out of range.
   bool IsValid(std::string* error) const;

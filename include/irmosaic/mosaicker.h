@@ -2,6 +2,7 @@
 
 #include <Eigen/Core>
 #include <array>
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <limits>
@@ -36,6 +37,8 @@ struct MosaickerOptions {
   double search_radius_px = 64.0;       // SCD search around the POS prediction.
   double max_range_m = 30000.0;         // Rays longer than this: frame refused.
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
+  // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
+  double overview_interval_s = 2.0;
   int tile_size = 512;                  // Store tile side, pixels: a multiple of 16 in [64, 8192].
   std::string compression = "ZSTD";     // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
   FusionOptions fusion;
@@ -117,6 +120,10 @@ class IRMOSAIC_EXPORT Mosaicker {
   // Same with the frame's pose given directly (e.g. from a live POS stream; PoseFromRecord
   // converts a PosRecord); the POS track is not consulted.
   PushResult Push(int64_t index, double time_s, const Pose& pose, const cv::Mat& image);
+  // As Push, for a frame that arrived from the sensor at `arrival` (earlier than now when it
+  // waited in a queue): the publish latency counts from then.
+  PushResult Push(int64_t index, double time_s, const cv::Mat& image,
+                  std::chrono::steady_clock::time_point arrival);
 
   // While true, pushed frames rebuild the fusion state but are not painted (resume replay).
   void SetReplay(bool replay);

@@ -37,8 +37,13 @@ struct TileStoreOptions {
   // Tile compression: "ZSTD" (default, chosen by bench/store_bench), "DEFLATE", "LZW" or "NONE";
   // a horizontal predictor is always used (floating-point predictor for Float32).
   std::string compression = "ZSTD";
-  int compression_level = 1;     // ZSTD 1..22 / DEFLATE 1..9; low levels keep the writer fast.
-  int overview_levels = -1;      // Overview levels above level 0; -1: grow with the extent.
+  int compression_level = 1;  // ZSTD 1..22 / DEFLATE 1..9; low levels keep the writer fast.
+  int overview_levels = -1;   // Overview levels above level 0; -1: grow with the extent.
+  // Overviews and frames.gpkg are brought up to date at most this often, seconds (0: on
+  // every publish); level-0 tiles and the index are published every time, and Close()
+  // brings everything up to date. Zoomed-out views may lag by this much; the writer's work
+  // per publish no longer includes the overview pyramid and the growing frames.gpkg.
+  double overview_interval_s = 0.0;
   size_t max_cached_tiles = 64;  // Memory bound: clean tiles beyond this leave memory.
   bool durable = false;          // fsync each file before its rename (power-loss safety).
   int writer_nice = 5;           // Writer thread's nice increment (0: same priority as the caller).
@@ -131,6 +136,7 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t tile_reloads = 0;     // Tiles read back from disk after leaving memory.
     double paint_ms_total = 0.0;  // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;  // Time the writer thread spent working.
+    double writer_cpu_ms = 0.0;   // CPU time of that work (the load does not inflate it).
     double publish_p50_ms = 0.0;  // RequestPublish() to published, median.
     double publish_p99_ms = 0.0;  // ... 99th percentile.
     double publish_max_ms = 0.0;  // ... worst.

@@ -1,0 +1,653 @@
+// End to end benchmark of the pipeline (issue 10; output cost of issue 7): the Mosaicker on a
+// simulated 640x512 flight rendered on the fly by FlightSimulator (no disk input), and on the
+// same first frames cv::Stitcher (SCANS) and a plain ORB+RANSAC incremental pipeline.
+//
+//   flight_bench [--frames N] [--paced-frames N] [--compare 100,300] [--no-compare]
+//                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
+//
+// Scenarios: (1) "free": frames pushed as fast as the pipeline takes them, throughput and
+// memory at 10 %, 50 % and 100 % of the flight; (2) "paced": frames arriving at the sensor rate
+// (25 fps), publish latency counted from each frame's arrival; (3) "compare": each method in
+// its own child process (this program with --child) so its peak memory is its own.
+// Frames are rendered by a producer thread; the pipeline's CPU time excludes it (thread CPU
+// clocks), which the load of a shared machine does not inflate much.
+#include <pthread.h>
+#include <spawn.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <cstring>
+#include <ctime>
+#include <deque>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/features2d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/stitching.hpp>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "irmosaic/mosaicker.h"
+#include "irmosaic/simulator.h"
+#include "test_data.h"
+
+extern char** environ;
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+using irmosaic::Mosaicker;
+using irmosaic::MosaickerOptions;
+using irmosaic::SimFrame;
+
+double Seconds(timespec ts) {
+  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
+double ProcessCpuSeconds() {
+  timespec ts{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return Seconds(ts);
+}
+double ThreadCpuSeconds(pthread_t thread) {
+  clockid_t id;
+  if (pthread_getcpuclockid(thread, &id) != 0) return 0.0;
+  timespec ts{};
+  clock_gettime(id, &ts);
+  return Seconds(ts);
+}
+double Since(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+// Resident memory from /proc/self/status, MiB: "VmRSS" now, "VmHWM" peak.
+double StatusMiB(const char* key) {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  const std::string prefix = std::string(key) + ":";
+  while (std::getline(in, line)) {
+    if (line.rfind(prefix, 0) == 0) return std::stod(line.substr(prefix.size())) / 1024.0;
+  }
+  return 0.0;
+}
+// Resets the peak resident size (VmHWM) so each scenario reports its own peak.
+void ResetPeakRss() { std::ofstream("/proc/self/clear_refs") << "5"; }
+
+irmosaic::SynthOptions FlightOptions(int frames) {
+  irmosaic::SynthOptions options =
+      irmosaic::SynthOptions::LoadJson(irmosaic::testing::SamplePath("sample_flight/flight.json"));
+  options.frame_count = frames;
+  return options;
+}
+
+// Renders frames in order on its own thread, at most `depth` ahead of the consumer; with a
+// rate, frame i is released no earlier than start + i / rate (its arrival from the sensor).
+class Producer {
+ public:
+  Producer(const irmosaic::FlightSimulator& sim, int frames, double rate_hz, size_t depth)
+      : sim_(sim), frames_(frames), rate_hz_(rate_hz), depth_(depth) {
+    start_ = Clock::now();
+    thread_ = std::thread([this] { Loop(); });
+  }
+  ~Producer() {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      stop_ = true;
+    }
+    cv_.notify_all();
+    thread_.join();
+  }
+  // Next frame and its arrival time; false at the end.
+  bool Next(SimFrame* frame, Clock::time_point* arrival) {
+    std::unique_lock<std::mutex> lock(mu_);
+    cv_.wait(lock, [&] { return !queue_.empty() || done_; });
+    if (queue_.empty()) return false;
+    *frame = std::move(queue_.front().first);
+    *arrival = queue_.front().second;
+    queue_.pop_front();
+    cv_.notify_all();
+    return true;
+  }
+  // CPU time of the rendering thread so far (its own clock while it runs, then its total).
+  double cpu_s() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return done_ ? final_cpu_s_ : ThreadCpuSeconds(thread_.native_handle());
+  }
+  size_t max_queue() const { return max_queue_; }
+  Clock::time_point start() const { return start_; }
+
+ private:
+  void Loop() {
+    for (int i = 0; i < frames_; ++i) {
+      SimFrame frame = sim_.Render(i);
+      Clock::time_point arrival = Clock::now();
+      if (rate_hz_ > 0) {
+        arrival = start_ + std::chrono::duration_cast<Clock::duration>(
+                               std::chrono::duration<double>(i / rate_hz_));
+        std::this_thread::sleep_until(arrival);
+      }
+      std::unique_lock<std::mutex> lock(mu_);
+      // Paced frames are never held back: a slow pipeline lets them queue (as a sensor would).
+      cv_.wait(lock, [&] { return stop_ || rate_hz_ > 0 || queue_.size() < depth_; });
+      if (stop_) break;
+      queue_.emplace_back(std::move(frame), arrival);
+      max_queue_ = std::max(max_queue_, queue_.size());
+      cv_.notify_all();
+    }
+    const double cpu = ThreadCpuSeconds(pthread_self());
+    std::lock_guard<std::mutex> lock(mu_);
+    final_cpu_s_ = cpu;
+    done_ = true;
+    cv_.notify_all();
+  }
+
+  const irmosaic::FlightSimulator& sim_;
+  const int frames_;
+  const double rate_hz_;
+  const size_t depth_;
+  Clock::time_point start_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::deque<std::pair<SimFrame, Clock::time_point>> queue_;
+  size_t max_queue_ = 0;
+  bool done_ = false, stop_ = false;
+  double final_cpu_s_ = 0.0;
+  std::thread thread_;
+};
+
+struct RunConfig {
+  int frames = 2000;
+  double rate_hz = 0.0;  // 0: as fast as possible.
+  std::string store;
+  bool optimize = true;
+  bool checkpoints = true;
+};
+
+// One Mosaicker run over a simulated flight; returns its figures.
+nlohmann::json RunMosaicker(const RunConfig& config) {
+  irmosaic::FlightSimulator sim(FlightOptions(config.frames));
+  MosaickerOptions options;
+  options.store_path = config.store;
+  options.mode = irmosaic::TileStoreOptions::Mode::kOverwrite;
+  options.ground_height_m = sim.options().ground_height_m;
+  options.fusion.optimize = config.optimize;
+  std::filesystem::remove_all(config.store);
+  ResetPeakRss();
+  const double rss_start = StatusMiB("VmRSS");
+  const double cpu0 = ProcessCpuSeconds();
+  nlohmann::json checkpoints = nlohmann::json::array();
+  std::vector<int> marks;  // Every 10 % of the flight.
+  for (int k = 1; k <= 10; ++k) marks.push_back(std::max(1, config.frames * k / 10));
+  size_t next_mark = 0;
+  int64_t placed = 0, pushed = 0;
+  double last_wall = 0.0, last_cpu = 0.0, producer_cpu = 0.0, push_wall_s = 0.0;
+  int last_frames = 0;
+  Clock::time_point start;
+  {
+    Mosaicker mosaicker(options, sim.camera(), sim.MeasuredPos());
+    Producer producer(sim, config.frames, config.rate_hz, 4);
+    start = producer.start();
+    SimFrame frame;
+    Clock::time_point arrival;
+    while (producer.Next(&frame, &arrival)) {
+      const auto t0 = Clock::now();
+      const irmosaic::PushResult r =
+          mosaicker.Push(frame.index, frame.time_s, frame.image, arrival);
+      push_wall_s += Since(t0);
+      ++pushed;
+      if (r.placed()) ++placed;
+      if (config.checkpoints && next_mark < marks.size() && pushed == marks[next_mark]) {
+        const double wall = Since(start);
+        const double cpu = ProcessCpuSeconds() - cpu0 - producer.cpu_s();
+        checkpoints.push_back(
+            {{"percent", 100.0 * static_cast<double>(pushed) / config.frames},
+             {"frames", pushed},
+             {"wall_s", wall},
+             {"segment_frames_per_s", (pushed - last_frames) / std::max(1e-9, wall - last_wall)},
+             {"segment_cpu_ms_per_frame",
+              1000.0 * (cpu - last_cpu) / std::max<int64_t>(1, pushed - last_frames)},
+             {"rss_mib", StatusMiB("VmRSS")},
+             {"peak_rss_mib", StatusMiB("VmHWM")},
+             {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames}});
+        const auto& c = checkpoints.back();
+        std::cerr << "flight_bench: " << pushed << "/" << config.frames << " frames, "
+                  << c["segment_frames_per_s"].get<double>() << " frames/s, "
+                  << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame, RSS "
+                  << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
+                  << ")" << std::endl;
+        last_wall = wall;
+        last_cpu = cpu;
+        last_frames = static_cast<int>(pushed);
+        ++next_mark;
+      }
+    }
+    const double foreground_s = Since(start);
+    producer_cpu = producer.cpu_s();
+    const auto finish0 = Clock::now();
+    mosaicker.Finish();
+    const double finish_s = Since(finish0);
+    const double wall = Since(start);
+    const double cpu = ProcessCpuSeconds() - cpu0 - producer_cpu;
+    const irmosaic::MosaickerSummary s = mosaicker.summary();
+    const irmosaic::TileStore::Stats st = mosaicker.store()->stats();
+    int64_t store_bytes = 0;
+    for (const auto& e : std::filesystem::recursive_directory_iterator(config.store)) {
+      if (e.is_regular_file()) store_bytes += static_cast<int64_t>(e.file_size());
+    }
+    return {{"frames", config.frames},
+            {"rate_hz", config.rate_hz},
+            {"optimize", config.optimize},
+            {"frames_placed", placed},
+            {"frames_registered", s.frames_registered},
+            {"frames_pos_only", s.frames_pos_only},
+            {"wall_s", wall},
+            {"foreground_wall_s", foreground_s},
+            {"finish_s", finish_s},
+            {"frames_per_s", config.frames / wall},
+            {"foreground_frames_per_s", config.frames / foreground_s},
+            {"push_ms_per_frame", 1000.0 * push_wall_s / config.frames},
+            {"pipeline_cpu_s", cpu},
+            {"pipeline_cpu_ms_per_frame", 1000.0 * cpu / config.frames},
+            {"renderer_cpu_ms_per_frame", 1000.0 * producer_cpu / config.frames},
+            {"publish_latency_p50_s", s.publish_latency_p50_s},
+            {"publish_latency_p99_s", s.publish_latency_p99_s},
+            {"publish_latency_max_s", s.publish_latency_max_s},
+            {"generations_published", s.generations_published},
+            {"writer_busy_ms_per_frame", st.writer_busy_ms / config.frames},
+            {"writer_cpu_ms_per_frame", st.writer_cpu_ms / config.frames},
+            {"paint_ms_per_frame", st.paint_ms_total / config.frames},
+            {"tiles_written", st.tiles_written},
+            {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
+            {"optimizer_solves", s.fusion.solves},
+            {"optimizer_mean_solve_ms",
+             s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
+            {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
+            {"rerendered_frames", s.fusion.rerendered_frames},
+            {"rss_start_mib", rss_start},
+            {"peak_rss_mib", StatusMiB("VmHWM")},
+            {"checkpoints", checkpoints}};
+  }
+}
+
+// Frames as 8-bit images for the OpenCV baselines (a linear stretch of the 16-bit signal).
+std::vector<cv::Mat> EightBitFrames(int frames) {
+  irmosaic::FlightSimulator sim(FlightOptions(frames));
+  std::vector<cv::Mat> out;
+  for (int i = 0; i < frames; ++i) {
+    cv::Mat image = sim.Render(i).image, eight;
+    double lo = 0, hi = 0;
+    cv::minMaxLoc(image, &lo, &hi);
+    image.convertTo(eight, CV_8U, 255.0 / std::max(1.0, hi - lo),
+                    -lo * 255.0 / std::max(1.0, hi - lo));
+    out.push_back(eight);
+  }
+  return out;
+}
+
+nlohmann::json RunStitcher(int frames) {
+  std::vector<cv::Mat> images = EightBitFrames(frames);
+  // The Stitcher's seam finder takes three channels only.
+  for (cv::Mat& image : images) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
+  const auto start = Clock::now();
+  cv::Ptr<cv::Stitcher> stitcher = cv::Stitcher::create(cv::Stitcher::SCANS);
+  cv::Mat pano;
+  const cv::Stitcher::Status status = stitcher->stitch(images, pano);
+  const double seconds = Since(start);
+  const char* names[] = {"OK", "ERR_NEED_MORE_IMGS", "ERR_HOMOGRAPHY_EST_FAIL",
+                         "ERR_CAMERA_PARAMS_ADJUST_FAIL"};
+  return {{"method", "cv::Stitcher SCANS"},
+          {"frames", frames},
+          {"seconds", seconds},
+          // Success: every frame in the panorama (the Stitcher drops frames it cannot match).
+          {"success",
+           status == cv::Stitcher::OK && static_cast<int>(stitcher->component().size()) == frames},
+          {"status", names[static_cast<int>(status)]},
+          {"frames_in_result", stitcher->component().size()},
+          {"output_px", static_cast<double>(pano.total())}};
+}
+
+// A plain incremental pipeline: ORB on each frame, brute-force Hamming matches to the previous
+// frame with a ratio test, RANSAC homography, chained onto the first frame; frames composited
+// onto a canvas. No POS, no global adjustment: what a quick implementation does.
+nlohmann::json RunOrb(int frames) {
+  std::vector<cv::Mat> images = EightBitFrames(frames);
+  const auto start = Clock::now();
+  cv::Ptr<cv::ORB> orb = cv::ORB::create(1500);
+  cv::BFMatcher matcher(cv::NORM_HAMMING);
+  std::vector<cv::KeyPoint> prev_kp;
+  cv::Mat prev_desc;
+  std::vector<cv::Mat> chain(images.size());
+  int failed = 0;
+  for (size_t i = 0; i < images.size(); ++i) {
+    std::vector<cv::KeyPoint> kp;
+    cv::Mat desc;
+    orb->detectAndCompute(images[i], cv::noArray(), kp, desc);
+    chain[i] = cv::Mat::eye(3, 3, CV_64F);
+    if (i > 0) {
+      std::vector<std::vector<cv::DMatch>> knn;
+      if (!desc.empty() && !prev_desc.empty()) matcher.knnMatch(desc, prev_desc, knn, 2);
+      std::vector<cv::Point2f> from, to;
+      for (const auto& m : knn) {
+        if (m.size() == 2 && m[0].distance < 0.75f * m[1].distance) {
+          from.push_back(kp[m[0].queryIdx].pt);
+          to.push_back(prev_kp[m[0].trainIdx].pt);
+        }
+      }
+      cv::Mat h;
+      cv::Mat inliers;
+      if (from.size() >= 8) h = cv::findHomography(from, to, cv::RANSAC, 3.0, inliers);
+      if (h.empty() || cv::countNonZero(inliers) < 12) {
+        ++failed;
+        h = cv::Mat::eye(3, 3, CV_64F);  // Lost: assume no motion.
+      }
+      chain[i] = chain[i - 1] * h;
+    }
+    prev_kp = std::move(kp);
+    prev_desc = desc;
+  }
+  const double register_s = Since(start);
+  // Composite: bounding box of the chained footprints, capped at 400 Mpx (else "failed").
+  double min_x = 0, min_y = 0, max_x = 0, max_y = 0;
+  for (size_t i = 0; i < images.size(); ++i) {
+    std::vector<cv::Point2f> corners = {{0, 0},
+                                        {static_cast<float>(images[i].cols), 0},
+                                        {static_cast<float>(images[i].cols),
+                                         static_cast<float>(images[i].rows)},
+                                        {0, static_cast<float>(images[i].rows)}},
+                             mapped;
+    cv::perspectiveTransform(corners, mapped, chain[i]);
+    for (const auto& p : mapped) {
+      min_x = std::min<double>(min_x, p.x);
+      min_y = std::min<double>(min_y, p.y);
+      max_x = std::max<double>(max_x, p.x);
+      max_y = std::max<double>(max_y, p.y);
+    }
+  }
+  const double width = max_x - min_x, height = max_y - min_y;
+  const bool fits = std::isfinite(width * height) && width * height < 4e8;
+  if (fits) {
+    cv::Mat canvas(static_cast<int>(height) + 1, static_cast<int>(width) + 1, CV_8U, cv::Scalar(0));
+    const cv::Mat shift = (cv::Mat_<double>(3, 3) << 1, 0, -min_x, 0, 1, -min_y, 0, 0, 1);
+    cv::Mat full_mask(images[0].size(), CV_8U, cv::Scalar(255));
+    for (size_t i = 0; i < images.size(); ++i) {
+      cv::Mat warped, mask;
+      cv::warpPerspective(images[i], warped, shift * chain[i], canvas.size());
+      cv::warpPerspective(full_mask, mask, shift * chain[i], canvas.size(), cv::INTER_NEAREST);
+      warped.copyTo(canvas, mask);
+    }
+  }
+  const double seconds = Since(start);
+  return {{"method", "ORB+RANSAC incremental"},
+          {"frames", frames},
+          {"seconds", seconds},
+          {"register_seconds", register_s},
+          {"success", fits && failed == 0},
+          {"pairs_failed", failed},
+          {"canvas_mpx", width * height / 1e6}};
+}
+
+// Runs this program with --child KIND in its own process: its peak memory is its own.
+nlohmann::json RunChild(const std::string& self, const std::string& kind, int frames,
+                        double timeout_s, const std::string& store_root) {
+  const std::string json_path =
+      store_root + "/child_" + kind + "_" + std::to_string(frames) + ".json";
+  std::filesystem::remove(json_path);
+  std::vector<std::string> args = {self,
+                                   "--child",
+                                   kind,
+                                   "--frames",
+                                   std::to_string(frames),
+                                   "--json",
+                                   json_path,
+                                   "--store",
+                                   store_root + "/child_store"};
+  std::vector<char*> argv;
+  for (auto& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  pid_t pid = 0;
+  const auto start = Clock::now();
+  if (posix_spawn(&pid, self.c_str(), nullptr, nullptr, argv.data(), environ) != 0) {
+    return {{"method", kind}, {"frames", frames}, {"success", false}, {"status", "spawn failed"}};
+  }
+  int status = 0;
+  rusage usage{};
+  bool timed_out = false;
+  while (true) {
+    const pid_t r = wait4(pid, &status, WNOHANG, &usage);
+    if (r == pid) break;
+    if (Since(start) > timeout_s) {
+      kill(pid, SIGKILL);
+      wait4(pid, &status, 0, &usage);
+      timed_out = true;
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  nlohmann::json result;
+  std::ifstream in(json_path);
+  if (!timed_out && in) {
+    result = nlohmann::json::parse(in, nullptr, false);
+  }
+  if (!result.is_object()) {
+    result = {
+        {"method", kind},
+        {"frames", frames},
+        {"success", false},
+        {"status", timed_out ? "timeout after " + std::to_string(static_cast<int>(timeout_s)) + " s"
+                             : "crashed (exit status " + std::to_string(status) + ")"},
+        {"seconds", Since(start)}};
+  }
+  result["peak_rss_mib"] = result.contains("own_peak_rss_mib")
+                               ? result["own_peak_rss_mib"].get<double>()
+                               : static_cast<double>(usage.ru_maxrss) / 1024.0;
+  result["cpu_s"] = Seconds({usage.ru_utime.tv_sec, usage.ru_utime.tv_usec * 1000}) +
+                    Seconds({usage.ru_stime.tv_sec, usage.ru_stime.tv_usec * 1000});
+  return result;
+}
+
+std::string Fixed(double v, int digits) {
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(digits) << v;
+  return s.str();
+}
+
+std::string MachineLine() {
+  std::string model = "unknown CPU";
+  std::ifstream cpu("/proc/cpuinfo");
+  std::string line;
+  while (std::getline(cpu, line)) {
+    if (line.rfind("model name", 0) == 0) {
+      model = line.substr(line.find(':') + 2);
+      break;
+    }
+  }
+  double load = 0.0;
+  std::ifstream("/proc/loadavg") >> load;
+  return model + ", " + std::to_string(std::thread::hardware_concurrency()) +
+         " cores, load average " + Fixed(load, 2) + " at start";
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  int frames = 2000, paced_frames = 750;
+  std::vector<int> compare = {100, 300};
+  bool optimize = true;
+  double timeout_s = 900.0;
+  std::string json_path, store = "/tmp/flight_bench", child;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) {
+        std::cerr << "flight_bench: " << a << " needs a value\n";
+        std::exit(2);
+      }
+      return argv[++i];
+    };
+    if (a == "--frames") {
+      frames = std::stoi(value());
+    } else if (a == "--paced-frames") {
+      paced_frames = std::stoi(value());
+    } else if (a == "--compare") {
+      compare.clear();
+      std::stringstream list(value());
+      std::string item;
+      while (std::getline(list, item, ',')) compare.push_back(std::stoi(item));
+    } else if (a == "--no-compare") {
+      compare.clear();
+    } else if (a == "--no-optimize") {
+      optimize = false;
+    } else if (a == "--timeout") {
+      timeout_s = std::stod(value());
+    } else if (a == "--json") {
+      json_path = value();
+    } else if (a == "--store") {
+      store = value();
+    } else if (a == "--child") {
+      child = value();
+    } else {
+      std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
+                   "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S]\n";
+      return 2;
+    }
+  }
+  cv::setNumThreads(2);  // The target machine: 2 cores.
+
+  if (!child.empty()) {
+    nlohmann::json result;
+    if (child == "stitcher") {
+      result = RunStitcher(frames);
+    } else if (child == "orb") {
+      result = RunOrb(frames);
+    } else {
+      RunConfig config;
+      config.frames = frames;
+      config.store = store;
+      config.checkpoints = false;
+      const nlohmann::json r = RunMosaicker(config);
+      result = {{"method", "irmosaic Mosaicker"},
+                {"frames", frames},
+                {"seconds", r["wall_s"]},
+                {"success", r["frames_placed"] == frames},
+                {"frames_registered", r["frames_registered"]}};
+    }
+    // Its own peak (VmHWM after exec); wait4's ru_maxrss starts from the parent's.
+    result["own_peak_rss_mib"] = StatusMiB("VmHWM");
+    std::ofstream(json_path) << result.dump(2) << "\n";
+    return 0;
+  }
+
+  std::filesystem::create_directories(store);
+  nlohmann::json doc;
+  doc["machine"] = MachineLine();
+  std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
+
+  if (frames > 0) {
+    RunConfig free_run;
+    free_run.frames = frames;
+    free_run.store = store + "/free";
+    free_run.optimize = optimize;
+    const nlohmann::json f = RunMosaicker(free_run);
+    doc["free"] = f;
+    std::cout << "\nAs fast as possible, " << frames << " frames ("
+              << (optimize ? "with" : "without") << " the optimizer):\n"
+              << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
+              << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(10)
+              << "RSS MiB" << std::setw(11) << "peak MiB"
+              << "\n";
+    for (const auto& c : f["checkpoints"]) {
+      std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
+                << std::setw(10) << Fixed(c["wall_s"], 1) << std::setw(12)
+                << Fixed(c["segment_frames_per_s"], 1) << std::setw(14)
+                << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(10)
+                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+    }
+    std::cout << "total: " << Fixed(f["frames_per_s"], 1) << " frames/s wall (foreground "
+              << Fixed(f["foreground_frames_per_s"], 1) << ", finish " << Fixed(f["finish_s"], 1)
+              << " s), pipeline CPU " << Fixed(f["pipeline_cpu_ms_per_frame"], 1)
+              << " ms/frame (renderer " << Fixed(f["renderer_cpu_ms_per_frame"], 1)
+              << " ms/frame excluded), publish latency p50 " << Fixed(f["publish_latency_p50_s"], 3)
+              << " s p99 " << Fixed(f["publish_latency_p99_s"], 3) << " s, peak RSS "
+              << Fixed(f["peak_rss_mib"], 0) << " MiB\n"
+              << "output: writer CPU " << Fixed(f["writer_cpu_ms_per_frame"], 2)
+              << " ms/frame (own thread; wall busy " << Fixed(f["writer_busy_ms_per_frame"], 2)
+              << "), paint " << Fixed(f["paint_ms_per_frame"], 2) << " ms/frame, store "
+              << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
+              << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
+              << f["frames_pos_only"].get<int64_t>() << "\n";
+  }
+
+  if (paced_frames > 0) {
+    RunConfig paced;
+    paced.frames = paced_frames;
+    paced.rate_hz = 25.0;
+    paced.store = store + "/paced";
+    paced.optimize = optimize;
+    paced.checkpoints = false;
+    const nlohmann::json p = RunMosaicker(paced);
+    doc["paced"] = p;
+    std::cout << "\nFrames arriving at 25 fps, " << paced_frames
+              << " frames: publish latency from arrival p50 "
+              << Fixed(p["publish_latency_p50_s"], 3) << " s, p99 "
+              << Fixed(p["publish_latency_p99_s"], 3) << " s, max "
+              << Fixed(p["publish_latency_max_s"], 3) << " s; pipeline CPU "
+              << Fixed(p["pipeline_cpu_ms_per_frame"], 1) << " ms/frame; writer CPU "
+              << Fixed(p["writer_cpu_ms_per_frame"], 2) << " ms/frame\n";
+  }
+
+  if (!compare.empty()) {
+    const std::string self = std::filesystem::canonical("/proc/self/exe").string();
+    nlohmann::json rows = nlohmann::json::array();
+    std::cout << "\nSame first frames, each method in its own process (timeout " << timeout_s
+              << " s):\n"
+              << std::left << std::setw(26) << "method" << std::right << std::setw(8) << "frames"
+              << std::setw(11) << "wall s" << std::setw(10) << "CPU s" << std::setw(11)
+              << "peak MiB" << std::setw(9) << "success" << std::setw(12) << "wall ratio"
+              << std::setw(12) << "mem ratio"
+              << "  status\n";
+    for (int n : compare) {
+      nlohmann::json ours = RunChild(self, "irmosaic", n, timeout_s, store);
+      ours["method"] = "irmosaic Mosaicker";
+      rows.push_back(ours);
+      for (const std::string kind : {"stitcher", "orb"}) {
+        nlohmann::json r = RunChild(self, kind, n, timeout_s, store);
+        r["wall_ratio_to_irmosaic"] =
+            r.value("seconds", 0.0) / std::max(1e-9, ours.value("seconds", 0.0));
+        r["memory_ratio_to_irmosaic"] =
+            r.value("peak_rss_mib", 0.0) / std::max(1e-9, ours.value("peak_rss_mib", 0.0));
+        rows.push_back(r);
+      }
+    }
+    for (const auto& r : rows) {
+      std::cout << std::left << std::setw(26) << r.value("method", std::string("?")) << std::right
+                << std::setw(8) << r.value("frames", 0) << std::setw(11)
+                << Fixed(r.value("seconds", 0.0), 1) << std::setw(10)
+                << Fixed(r.value("cpu_s", 0.0), 1) << std::setw(11)
+                << Fixed(r.value("peak_rss_mib", 0.0), 0) << std::setw(9)
+                << (r.value("success", false) ? "yes" : "no") << std::setw(12)
+                << (r.contains("wall_ratio_to_irmosaic") ? Fixed(r["wall_ratio_to_irmosaic"], 2)
+                                                         : std::string("1"))
+                << std::setw(12)
+                << (r.contains("memory_ratio_to_irmosaic") ? Fixed(r["memory_ratio_to_irmosaic"], 2)
+                                                           : std::string("1"))
+                << "  " << r.value("status", std::string("")) << "\n";
+    }
+    doc["compare"] = rows;
+  }
+  if (!json_path.empty()) std::ofstream(json_path) << doc.dump(2) << "\n";
+  return 0;
+}
