@@ -8,6 +8,7 @@
 #include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
+#include <type_traits>
 #include <vector>
 
 namespace irmosaic {
@@ -438,30 +439,55 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
       cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
       cv::Rect(0, 0, image.cols, image.rows);
   const cv::Rect inner(roi.x - ext.x, roi.y - ext.y, roi.width, roi.height);
-  image(ext).convertTo(work_f32, CV_32F);
-
-  // Validity: the mask, minus non-finite samples of float input.
-  if (mask.empty()) {
-    work_mask.create(ext.size(), CV_8U);
-    work_mask.setTo(255);
+  // Float copy and validity (the mask, minus non-finite samples of float input) in one pass;
+  // then no-data filled with the valid mean so its edge is a small step. Erosion below keeps
+  // only pixels that neither a mask edge nor the image border (where the blur reflects the
+  // image) can reach through blur and Sobel. Outside the image counts as no data; outside
+  // `ext` but inside the image is farther than the erosion reaches.
+  work_f32.create(ext.size(), CV_32F);
+  work_mask.create(ext.size(), CV_8U);
+  double valid_sum = 0.0;
+  int64_t valid_count = 0;
+  auto load = [&]<typename T>() {
+    for (int y = 0; y < ext.height; ++y) {
+      const T* in = image.ptr<T>(ext.y + y) + ext.x;
+      const uint8_t* m = mask.empty() ? nullptr : mask.ptr<uint8_t>(ext.y + y) + ext.x;
+      float* dst = work_f32.ptr<float>(y);
+      uint8_t* ok = work_mask.ptr<uint8_t>(y);
+      float row_sum = 0.0f;
+      int row_count = 0;
+      for (int x = 0; x < ext.width; ++x) {
+        float v = static_cast<float>(in[x]);
+        bool is_valid = m == nullptr || m[x] != 0;
+        if constexpr (std::is_same_v<T, float>) {
+          const bool finite = std::abs(v) <= std::numeric_limits<float>::max();  // NaN: false
+          is_valid = is_valid && finite;
+          v = finite ? v : 0.0f;
+        }
+        dst[x] = v;
+        ok[x] = is_valid ? 255 : 0;
+        row_sum += is_valid ? v : 0.0f;
+        row_count += is_valid;
+      }
+      valid_sum += row_sum;
+      valid_count += row_count;
+    }
+  };
+  if (image.depth() == CV_8U) {
+    load.operator()<uint8_t>();
+  } else if (image.depth() == CV_16U) {
+    load.operator()<uint16_t>();
   } else {
-    cv::compare(mask(ext), 0, work_mask, cv::CMP_NE);
+    load.operator()<float>();
   }
-  if (image.depth() == CV_32F && !cv::checkRange(work_f32, true)) {
-    cv::Mat& finite = scratch->finite;
-    cv::compare(cv::abs(work_f32), std::numeric_limits<float>::max(), finite, cv::CMP_LE);
-    cv::bitwise_and(work_mask, finite, work_mask);
-    cv::bitwise_not(finite, tmp);
-    work_f32.setTo(0.0f, tmp);
-  }
-  // Fill the no-data area with the mean so its edge is a small step, then keep only pixels
-  // that neither a mask edge nor the image border (where the blur reflects the image) can
-  // reach through blur and Sobel. Outside the image counts as no data; outside `ext` but
-  // inside the image is farther than the erosion reaches.
-  if (!mask.empty() || image.depth() == CV_32F) {
-    const double fill = cv::mean(work_f32, work_mask)[0];
-    cv::bitwise_not(work_mask, tmp);
-    work_f32.setTo(fill, tmp);
+  if (valid_count < static_cast<int64_t>(ext.area())) {
+    const float fill =
+        valid_count > 0 ? static_cast<float>(valid_sum / static_cast<double>(valid_count)) : 0.0f;
+    for (int y = 0; y < ext.height; ++y) {
+      float* dst = work_f32.ptr<float>(y);
+      const uint8_t* ok = work_mask.ptr<uint8_t>(y);
+      for (int x = 0; x < ext.width; ++x) dst[x] = ok[x] ? dst[x] : fill;
+    }
   }
   ErodeSquare(work_mask, filter.erode_px, &tmp, &scratch->eroded, &erode_pad_);
   cv::swap(work_mask, scratch->eroded);
