@@ -64,8 +64,8 @@ void Warp(const cv::Mat& src, const cv::Matx33d& m, cv::Size size, float add_sca
         u *= inv_w;
         v *= inv_w;
       }
-      u = std::min(std::max(u, 0.0f), max_u);
-      v = std::min(std::max(v, 0.0f), max_v);
+      u = u >= 0.0f ? std::min(u, max_u) : 0.0f;  // NaN -> 0, as the SIMD path's max
+      v = v >= 0.0f ? std::min(v, max_v) : 0.0f;
       const int iu = static_cast<int>(u), iv = static_cast<int>(v);
       fus[x] = u - static_cast<float>(iu);
       fvs[x] = v - static_cast<float>(iv);
