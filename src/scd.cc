@@ -54,7 +54,27 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
     const uint8_t* m = valid_u8.ptr<uint8_t>(y);
     float row_sum = 0.0f;
     int row_count = 0;
-    for (int x = 1; x + 1 < image_f32.cols; ++x) {
+    int x = 1;
+#if CV_SIMD128
+    // The scalar loop below, four pixels at a time.
+    const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+    const cv::v_float32x4 two = cv::v_setall_f32(2.0f), four = cv::v_setall_f32(4.0f);
+    cv::v_float32x4 vsum = zero, vcount = zero;
+    for (; x + 5 <= image_f32.cols; x += 4) {
+      const cv::v_float32x4 l = (cv::v_load(a + x - 1) + cv::v_load(a + x + 1) +
+                                 cv::v_load(c + x - 1) + cv::v_load(c + x + 1)) -
+                                two * (cv::v_load(a + x) + cv::v_load(c + x) +
+                                       cv::v_load(b + x - 1) + cv::v_load(b + x + 1)) +
+                                four * cv::v_load(b + x);
+      const cv::v_float32x4 w = cv::v_select(
+          cv::v_cvt_f32(cv::v_reinterpret_as_s32(cv::v_load_expand_q(m + x))) != zero, one, zero);
+      vsum += w * cv::v_abs(l);
+      vcount += w;
+    }
+    row_sum = cv::v_reduce_sum(vsum);
+    row_count = static_cast<int>(cv::v_reduce_sum(vcount));
+#endif
+    for (; x + 1 < image_f32.cols; ++x) {
       const float l = (a[x - 1] + a[x + 1] + c[x - 1] + c[x + 1]) -
                       2.0f * (a[x] + c[x] + b[x - 1] + b[x + 1]) + 4.0f * b[x];
       const float w = m[x] ? 1.0f : 0.0f;
@@ -444,50 +464,35 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
   // only pixels that neither a mask edge nor the image border (where the blur reflects the
   // image) can reach through blur and Sobel. Outside the image counts as no data; outside
   // `ext` but inside the image is farther than the erosion reaches.
-  work_f32.create(ext.size(), CV_32F);
-  work_mask.create(ext.size(), CV_8U);
-  double valid_sum = 0.0;
-  int64_t valid_count = 0;
-  auto load = [&]<typename T>() {
-    for (int y = 0; y < ext.height; ++y) {
-      const T* in = image.ptr<T>(ext.y + y) + ext.x;
-      const uint8_t* m = mask.empty() ? nullptr : mask.ptr<uint8_t>(ext.y + y) + ext.x;
-      float* dst = work_f32.ptr<float>(y);
-      uint8_t* ok = work_mask.ptr<uint8_t>(y);
-      float row_sum = 0.0f;
-      int row_count = 0;
-      for (int x = 0; x < ext.width; ++x) {
-        float v = static_cast<float>(in[x]);
-        bool is_valid = m == nullptr || m[x] != 0;
-        if constexpr (std::is_same_v<T, float>) {
-          const bool finite = std::abs(v) <= std::numeric_limits<float>::max();  // NaN: false
-          is_valid = is_valid && finite;
-          v = finite ? v : 0.0f;
-        }
-        dst[x] = v;
-        ok[x] = is_valid ? 255 : 0;
-        row_sum += is_valid ? v : 0.0f;
-        row_count += is_valid;
-      }
-      valid_sum += row_sum;
-      valid_count += row_count;
-    }
-  };
-  if (image.depth() == CV_8U) {
-    load.operator()<uint8_t>();
-  } else if (image.depth() == CV_16U) {
-    load.operator()<uint16_t>();
+  // Whole-image OpenCV passes (vectorised) rather than one scalar loop over the pixels.
+  image(ext).convertTo(work_f32, CV_32F);
+  if (mask.empty()) {
+    work_mask.create(ext.size(), CV_8U);
+    work_mask.setTo(255);
   } else {
-    load.operator()<float>();
+    cv::compare(mask(ext), 0, work_mask, cv::CMP_NE);
   }
-  if (valid_count < static_cast<int64_t>(ext.area())) {
-    const float fill =
-        valid_count > 0 ? static_cast<float>(valid_sum / static_cast<double>(valid_count)) : 0.0f;
+  if (image.depth() == CV_32F &&
+      !cv::checkRange(work_f32, true, nullptr, -std::numeric_limits<float>::max(),
+                      std::numeric_limits<float>::max())) {
+    // Rare: non-finite samples are invalid (their value is replaced by the fill below).
     for (int y = 0; y < ext.height; ++y) {
-      float* dst = work_f32.ptr<float>(y);
-      const uint8_t* ok = work_mask.ptr<uint8_t>(y);
-      for (int x = 0; x < ext.width; ++x) dst[x] = ok[x] ? dst[x] : fill;
+      float* v = work_f32.ptr<float>(y);
+      uint8_t* ok = work_mask.ptr<uint8_t>(y);
+      for (int x = 0; x < ext.width; ++x) {
+        if (!(std::abs(v[x]) <= std::numeric_limits<float>::max())) {  // NaN: true
+          v[x] = 0.0f;
+          ok[x] = 0;
+        }
+      }
     }
+  }
+  const int valid_count = cv::countNonZero(work_mask);
+  if (valid_count < ext.area()) {
+    const float fill =
+        valid_count > 0 ? static_cast<float>(cv::mean(work_f32, work_mask)[0]) : 0.0f;
+    cv::bitwise_not(work_mask, tmp);
+    work_f32.setTo(fill, tmp);
   }
   ErodeSquare(work_mask, filter.erode_px, &tmp, &scratch->eroded, &erode_pad_);
   cv::swap(work_mask, scratch->eroded);
@@ -508,18 +513,8 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
       static_cast<float>(options_.noise_floor_sigmas * noise_std * filter.noise_gain);
   out->region = roi;
   out->floor_sq = floor * floor;
-  out->valid.create(roi.size(), CV_32F);
-  double valid_px = 0.0;
-  for (int y = 0; y < roi.height; ++y) {
-    const uint8_t* m = work_mask.ptr<uint8_t>(y + inner.y) + inner.x;
-    float* v = out->valid.ptr<float>(y);
-    int row_valid = 0;
-    for (int x = 0; x < roi.width; ++x) {
-      v[x] = m[x] ? 1.0f : 0.0f;
-      row_valid += m[x] ? 1 : 0;
-    }
-    valid_px += row_valid;
-  }
+  work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
+  const double valid_px = cv::countNonZero(work_mask(inner));
   out->valid_px = valid_px;
   Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
   if (unit) {
