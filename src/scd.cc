@@ -459,12 +459,12 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
       cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
       cv::Rect(0, 0, image.cols, image.rows);
   const cv::Rect inner(roi.x - ext.x, roi.y - ext.y, roi.width, roi.height);
-  // Float copy and validity (the mask, minus non-finite samples of float input) in one pass;
-  // then no-data filled with the valid mean so its edge is a small step. Erosion below keeps
-  // only pixels that neither a mask edge nor the image border (where the blur reflects the
-  // image) can reach through blur and Sobel. Outside the image counts as no data; outside
-  // `ext` but inside the image is farther than the erosion reaches.
-  // Whole-image OpenCV passes (vectorised) rather than one scalar loop over the pixels.
+  // Float copy and validity (the mask, minus non-finite samples of float input), as whole-image
+  // OpenCV passes (vectorised; a scalar loop over the pixels cost more); then no-data filled with
+  // the valid mean so its edge is a small step. Erosion below keeps only pixels that neither a mask
+  // edge nor the image border (where the blur reflects the image) can reach through blur and Sobel.
+  // Outside the image counts as no data; outside `ext` but inside the image is farther than the
+  // erosion reaches.
   image(ext).convertTo(work_f32, CV_32F);
   if (mask.empty()) {
     work_mask.create(ext.size(), CV_8U);
@@ -806,7 +806,7 @@ bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point of
   return true;
 }
 
-double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift) {
+double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift, double* scd) {
   constexpr double kNone = -std::numeric_limits<double>::infinity();
   if (!(shift.cwiseAbs().maxCoeff() < 2.0)) return kNone;
   const Field& base = fine_scratch_.base_field;
@@ -869,6 +869,7 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
     den += row_d;
   }
   if (!(den >= 0.5)) return kNone;
+  if (scd) *scd = std::clamp(num / den, -1.0, 1.0);
   return options_.peak_criterion == ScdPeakCriterion::kSignificance ? num / std::sqrt(den)
                                                                     : num / den;
 }
@@ -908,7 +909,7 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
                &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
-               &base_noise, weighted ? &fine_scratch_.base_unit : nullptr);
+               &base_noise);
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;
@@ -962,11 +963,10 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   if (u > kNone && d > kNone) peak->subpixel.y() = RefineAxis(options_.subpixel, u, c, d);
   peak->ratio = scd_grid[(at.y - start.y + half) * side + (at.x - start.x + half)];  // SCD
   if (weighted) {
-    // The reported score is the paper's (unweighted) SCD.
-    double unused = 0.0, scd = 0.0;
-    if (Evaluate(fine_scratch_.templ_unit, fine_scratch_.base_unit, at, &unused, &scd)) {
-      peak->ratio = scd;
-    }
+    // The reported score is the paper's (unweighted) SCD: unit vectors of the base gradients
+    // made on the fly (a zero shift resamples nothing), no unit field of the base kept.
+    double scd = 0.0;
+    if (EvaluateShifted(at, Eigen::Vector2d::Zero(), &scd) > kNone) peak->ratio = scd;
   }
   const double h = options_.subpixel_step_px;
   if (h > 0.0) {

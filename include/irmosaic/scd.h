@@ -147,9 +147,9 @@ class IRMOSAIC_EXPORT ScdMatcher {
   };
   // Buffers of one pyramid level: kept apart so that sizes do not alternate between calls.
   struct Scratch {
-    cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, finite, eroded;
+    cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, eroded;
     Field templ_field, base_field;
-    Field templ_unit, base_unit;  // unit-vector fields (fine level, weighting on)
+    Field templ_unit;  // unit-vector field of the template (fine level, weighting on)
   };
   // *noise_std: the image noise std to use, or negative to estimate it (then written back).
   // unit (optional): also the unit-vector field of the same gradients.
@@ -170,7 +170,8 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // Criterion at integer `offset` of the template's unit field against the fine base gradients
   // resampled (cubic) at a sub-pixel shift, normalised on the fly: they are band-limited by the
   // pre-blur, and blur and Sobel commute with the shift.
-  double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift);
+  // scd (optional): the unweighted SCD there.
+  double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift, double* scd = nullptr);
   // Fills a field's vectors and weights from gradients; validity already in out->valid.
   // weight_cap > 0: vectors weighted by min(weight_cap, m / median m) (magnitude_weight_cap).
   void Normalise(const cv::Mat& gx, const cv::Mat& gy, double weight_cap, Field* out);
