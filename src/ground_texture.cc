@@ -11,6 +11,7 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "bilinear_warp.h"
 #include "irmosaic/error.h"
 #include "irmosaic/simulator.h"
 
@@ -105,12 +106,9 @@ void AddOctave(const Octave& o, double origin_col, double origin_row, double ste
           SplitMix(o.salt ^ hy ^ (static_cast<uint64_t>(ix0 + x) * 0x9E3779B97F4A7C15ull)));
     }
   }
-  const cv::Matx23d m(a(0, 0), a(0, 1), q0.x() - static_cast<double>(ix0), a(1, 0), a(1, 1),
-                      q0.y() - static_cast<double>(iy0));
-  cv::Mat values;
-  cv::warpAffine(lattice, values, m, grid->size(), cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
-                 cv::BORDER_REPLICATE);
-  cv::scaleAdd(values, o.amplitude, *grid, *grid);
+  const cv::Matx33d m(a(0, 0), a(0, 1), q0.x() - static_cast<double>(ix0), a(1, 0), a(1, 1),
+                      q0.y() - static_cast<double>(iy0), 0.0, 0.0, 1.0);
+  sim::AddWarpBilinear(lattice, m, static_cast<float>(o.amplitude), grid);
 }
 
 struct TileKey {

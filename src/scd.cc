@@ -8,6 +8,7 @@
 #include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
+#include <type_traits>
 #include <vector>
 
 namespace irmosaic {
@@ -53,7 +54,27 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
     const uint8_t* m = valid_u8.ptr<uint8_t>(y);
     float row_sum = 0.0f;
     int row_count = 0;
-    for (int x = 1; x + 1 < image_f32.cols; ++x) {
+    int x = 1;
+#if CV_SIMD128
+    // The scalar loop below, four pixels at a time.
+    const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+    const cv::v_float32x4 two = cv::v_setall_f32(2.0f), four = cv::v_setall_f32(4.0f);
+    cv::v_float32x4 vsum = zero, vcount = zero;
+    for (; x + 5 <= image_f32.cols; x += 4) {
+      const cv::v_float32x4 l = (cv::v_load(a + x - 1) + cv::v_load(a + x + 1) +
+                                 cv::v_load(c + x - 1) + cv::v_load(c + x + 1)) -
+                                two * (cv::v_load(a + x) + cv::v_load(c + x) +
+                                       cv::v_load(b + x - 1) + cv::v_load(b + x + 1)) +
+                                four * cv::v_load(b + x);
+      const cv::v_float32x4 w = cv::v_select(
+          cv::v_cvt_f32(cv::v_reinterpret_as_s32(cv::v_load_expand_q(m + x))) != zero, one, zero);
+      vsum += w * cv::v_abs(l);
+      vcount += w;
+    }
+    row_sum = cv::v_reduce_sum(vsum);
+    row_count = static_cast<int>(cv::v_reduce_sum(vcount));
+#endif
+    for (; x + 1 < image_f32.cols; ++x) {
       const float l = (a[x - 1] + a[x + 1] + c[x - 1] + c[x + 1]) -
                       2.0f * (a[x] + c[x] + b[x - 1] + b[x + 1]) + 4.0f * b[x];
       const float w = m[x] ? 1.0f : 0.0f;
@@ -159,35 +180,243 @@ cv::Mat CubicWeights(double t) {
   return (cv::Mat_<float>(4, 1) << w(t + 1.0), w(t), w(1.0 - t), w(2.0 - t));
 }
 
-// out(x) = src(x + shift) by separable cubic interpolation (reflected at the border), for
-// |shift| < 2 px.
-void CubicShift(const cv::Mat& src, const Eigen::Vector2d& shift, cv::Mat* out) {
+// out(p) = src(p + r.tl() + shift) for p in r.size(): the separable cubic (Keys) of
+// CubicShift on the rectangle r of src only, reads clamped to src, for |shift| < 2 px. Two
+// passes of four taps without OpenCV's per-call filter set-up (5 shifts per pair).
+void CubicShiftRect(const cv::Mat& src, const cv::Rect& r, const Eigen::Vector2d& shift,
+                    cv::Mat* out, cv::Mat* tmp) {
   const double fx = std::floor(shift.x()), fy = std::floor(shift.y());
-  // Kernel tap j reads src(x + j - anchor); taps are the samples n-1 .. n+2, n = floor(shift).
-  const cv::Point anchor(1 - static_cast<int>(fx), 1 - static_cast<int>(fy));
-  cv::sepFilter2D(src, *out, CV_32F, CubicWeights(shift.x() - fx), CubicWeights(shift.y() - fy),
-                  anchor, 0.0, cv::BORDER_REFLECT);
+  const cv::Mat kx = CubicWeights(shift.x() - fx), ky = CubicWeights(shift.y() - fy);
+  const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
+  const float wy[4] = {ky.at<float>(0), ky.at<float>(1), ky.at<float>(2), ky.at<float>(3)};
+  const int c0 = r.x + static_cast<int>(fx) - 1, r0 = r.y + static_cast<int>(fy) - 1;
+  const int tw = r.width + 3;
+  tmp->create(r.height, tw, CV_32F);
+  out->create(r.size(), CV_32F);
+  const int j_lo = std::clamp(-c0, 0, tw), j_hi = std::clamp(src.cols - c0, j_lo, tw);
+  for (int y = 0; y < r.height; ++y) {
+    const float* s[4];
+    for (int k = 0; k < 4; ++k) s[k] = src.ptr<float>(std::clamp(r0 + y + k, 0, src.rows - 1));
+    float* t = tmp->ptr<float>(y);
+    auto scalar = [&](int j) {
+      const int col = std::clamp(c0 + j, 0, src.cols - 1);
+      t[j] = wy[0] * s[0][col] + wy[1] * s[1][col] + wy[2] * s[2][col] + wy[3] * s[3][col];
+    };
+    int j = 0;
+    for (; j < j_lo; ++j) scalar(j);
+#if CV_SIMD128
+    const cv::v_float32x4 w0 = cv::v_setall_f32(wy[0]), w1 = cv::v_setall_f32(wy[1]);
+    const cv::v_float32x4 w2 = cv::v_setall_f32(wy[2]), w3 = cv::v_setall_f32(wy[3]);
+    for (; j + 4 <= j_hi; j += 4) {
+      const int col = c0 + j;
+      cv::v_store(t + j, w0 * cv::v_load(s[0] + col) + w1 * cv::v_load(s[1] + col) +
+                             w2 * cv::v_load(s[2] + col) + w3 * cv::v_load(s[3] + col));
+    }
+#endif
+    for (; j < tw; ++j) scalar(j);
+    float* o = out->ptr<float>(y);
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_float32x4 x0 = cv::v_setall_f32(wx[0]), x1 = cv::v_setall_f32(wx[1]);
+    const cv::v_float32x4 x2 = cv::v_setall_f32(wx[2]), x3 = cv::v_setall_f32(wx[3]);
+    for (; x + 4 <= r.width; x += 4) {
+      cv::v_store(o + x, x0 * cv::v_load(t + x) + x1 * cv::v_load(t + x + 1) +
+                             x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
+    }
+#endif
+    for (; x < r.width; ++x) {
+      o[x] = wx[0] * t[x] + wx[1] * t[x + 1] + wx[2] * t[x + 2] + wx[3] * t[x + 3];
+    }
+  }
+}
+
+// Binary erosion of a CV_8U mask (0 or 255) by a (2 r + 1) square, outside the image counting
+// as unset: the minimum over 2 r + 1 columns, then over 2 r + 1 rows, 16 pixels at a time. Same
+// result as cv::erode with a rectangle and BORDER_CONSTANT 0, without its per-call set-up.
+void ErodeSquare(const cv::Mat& mask, int r, cv::Mat* tmp, cv::Mat* out,
+                 std::vector<uint8_t>* padded) {
+  const int w = mask.cols, h = mask.rows, e = 2 * r + 1;
+  tmp->create(mask.size(), CV_8U);
+  out->create(mask.size(), CV_8U);
+  padded->assign(w + 2 * r + 16, 0);
+  uint8_t* pad = padded->data();
+  for (int y = 0; y < h; ++y) {
+    std::copy_n(mask.ptr<uint8_t>(y), w, pad + r);
+    uint8_t* t = tmp->ptr<uint8_t>(y);
+    int x = 0;
+#if CV_SIMD128
+    for (; x + 16 <= w; x += 16) {
+      cv::v_uint8x16 m = cv::v_load(pad + x);
+      for (int k = 1; k < e; ++k) m = cv::v_min(m, cv::v_load(pad + x + k));
+      cv::v_store(t + x, m);
+    }
+#endif
+    for (; x < w; ++x) t[x] = *std::min_element(pad + x, pad + x + e);
+  }
+  for (int y = 0; y < h; ++y) {
+    uint8_t* o = out->ptr<uint8_t>(y);
+    if (y < r || y + r >= h) {
+      std::fill_n(o, w, uint8_t{0});
+      continue;
+    }
+    int x = 0;
+#if CV_SIMD128
+    for (; x + 16 <= w; x += 16) {
+      cv::v_uint8x16 m = cv::v_load(tmp->ptr<uint8_t>(y - r) + x);
+      for (int k = 1; k < e; ++k) m = cv::v_min(m, cv::v_load(tmp->ptr<uint8_t>(y - r + k) + x));
+      cv::v_store(o + x, m);
+    }
+#endif
+    for (; x < w; ++x) {
+      uint8_t m = 255;
+      for (int k = 0; k < e; ++k) m = std::min(m, tmp->ptr<uint8_t>(y - r + k)[x]);
+      o[x] = m;
+    }
+  }
+}
+
+// gx, gy = 3x3 Sobel of `src` on the rectangle r (both in one pass); reads outside r use src's
+// real neighbours, clamped at src's edge.
+void SobelXY(const cv::Mat& src, const cv::Rect& r, cv::Mat* gx, cv::Mat* gy) {
+  gx->create(r.size(), CV_32F);
+  gy->create(r.size(), CV_32F);
+  const int x_lo = std::max(0, 1 - r.x), x_hi = std::min(r.width, src.cols - 1 - r.x);
+  for (int y = 0; y < r.height; ++y) {
+    const int sy = r.y + y;
+    const float* a = src.ptr<float>(std::max(0, sy - 1)) + r.x;
+    const float* b = src.ptr<float>(sy) + r.x;
+    const float* c = src.ptr<float>(std::min(src.rows - 1, sy + 1)) + r.x;
+    float* ox = gx->ptr<float>(y);
+    float* oy = gy->ptr<float>(y);
+    auto scalar = [&](int x) {
+      const int l = std::max(x - 1, -r.x), rr = std::min(x + 1, src.cols - 1 - r.x);
+      ox[x] = (a[rr] - a[l]) + 2.0f * (b[rr] - b[l]) + (c[rr] - c[l]);
+      oy[x] = (c[l] + 2.0f * c[x] + c[rr]) - (a[l] + 2.0f * a[x] + a[rr]);
+    };
+    int x = 0;
+    for (; x < x_lo; ++x) scalar(x);
+#if CV_SIMD128
+    const cv::v_float32x4 two = cv::v_setall_f32(2.0f);
+    for (; x + 4 <= x_hi; x += 4) {
+      const cv::v_float32x4 al = cv::v_load(a + x - 1), am = cv::v_load(a + x),
+                            ar = cv::v_load(a + x + 1);
+      const cv::v_float32x4 bl = cv::v_load(b + x - 1), br = cv::v_load(b + x + 1);
+      const cv::v_float32x4 cl = cv::v_load(c + x - 1), cm = cv::v_load(c + x),
+                            cr = cv::v_load(c + x + 1);
+      cv::v_store(ox + x, (ar - al) + two * (br - bl) + (cr - cl));
+      cv::v_store(oy + x, (cl + two * cm + cr) - (al + two * am + ar));
+    }
+#endif
+    for (; x < r.width; ++x) scalar(x);
+  }
+}
+
+// Sums over matching rectangles of two fields' planes: num = sum tc bc + ts bs,
+// den = sum td bd. One pass, four lanes; rows summed in double.
+void FieldSums(const cv::Mat& tc, const cv::Mat& ts, const cv::Mat& td, const cv::Mat& bc,
+               const cv::Mat& bs, const cv::Mat& bd, const cv::Rect& in_t, const cv::Rect& in_b,
+               double* num, double* den) {
+  double n = 0.0, d = 0.0;
+  const int w = in_t.width;
+  for (int y = 0; y < in_t.height; ++y) {
+    const float* a_c = tc.ptr<float>(in_t.y + y) + in_t.x;
+    const float* a_s = ts.ptr<float>(in_t.y + y) + in_t.x;
+    const float* a_d = td.ptr<float>(in_t.y + y) + in_t.x;
+    const float* b_c = bc.ptr<float>(in_b.y + y) + in_b.x;
+    const float* b_s = bs.ptr<float>(in_b.y + y) + in_b.x;
+    const float* b_d = bd.ptr<float>(in_b.y + y) + in_b.x;
+    float row_n = 0.0f, row_d = 0.0f;
+    int x = 0;
+#if CV_SIMD128
+    cv::v_float32x4 vn = cv::v_setzero_f32(), vd = cv::v_setzero_f32();
+    for (; x + 4 <= w; x += 4) {
+      vn += cv::v_load(a_c + x) * cv::v_load(b_c + x) + cv::v_load(a_s + x) * cv::v_load(b_s + x);
+      vd += cv::v_load(a_d + x) * cv::v_load(b_d + x);
+    }
+    row_n = cv::v_reduce_sum(vn);
+    row_d = cv::v_reduce_sum(vd);
+#endif
+    for (; x < w; ++x) {
+      row_n += a_c[x] * b_c[x] + a_s[x] * b_s[x];
+      row_d += a_d[x] * b_d[x];
+    }
+    n += row_n;
+    d += row_d;
+  }
+  *num = n;
+  *den = d;
 }
 
 // Reduces image and mask by an integer factor (pixel i covers [f i, f i + f)); a reduced pixel
 // is valid only when all its pixels are.
 void Reduce(const cv::Mat& image, const cv::Mat& mask, int factor, cv::Mat* image_small,
-            cv::Mat* mask_small, cv::Mat* scratch) {
-  const cv::Rect whole(0, 0, image.cols / factor * factor, image.rows / factor * factor);
-  const cv::Size small(image.cols / factor, image.rows / factor);
-  if (image.depth() == CV_32F) {
-    cv::resize(image(whole), *image_small, small, 0, 0, cv::INTER_AREA);
-  } else {
-    image(whole).convertTo(*scratch, CV_32F);  // Keep the averages' fractions.
-    cv::resize(*scratch, *image_small, small, 0, 0, cv::INTER_AREA);
+            cv::Mat* mask_small, cv::Mat* scratch, std::vector<float>* row_sum,
+            std::vector<uint8_t>* row_min) {
+  const int f = factor;
+  const cv::Size small(image.cols / f, image.rows / f);
+  const int w = small.width * f;
+  cv::Mat source = image;
+  if (image.depth() != CV_32F) {
+    image(cv::Rect(0, 0, w, small.height * f)).convertTo(*scratch, CV_32F);  // Keep fractions.
+    source = *scratch;
+  }
+  // Block means: sum f rows, then f columns (INTER_AREA's result for an integer factor).
+  image_small->create(small, CV_32F);
+  row_sum->resize(w);
+  float* acc = row_sum->data();
+  const float scale = 1.0f / static_cast<float>(f * f);
+  for (int i = 0; i < small.height; ++i) {
+    std::copy_n(source.ptr<float>(i * f), w, acc);
+    for (int k = 1; k < f; ++k) {
+      const float* in = source.ptr<float>(i * f + k);
+      int x = 0;
+#if CV_SIMD128
+      for (; x + 4 <= w; x += 4) cv::v_store(acc + x, cv::v_load(acc + x) + cv::v_load(in + x));
+#endif
+      for (; x < w; ++x) acc[x] += in[x];
+    }
+    float* out = image_small->ptr<float>(i);
+    int j = 0;
+#if CV_SIMD128
+    if (f == 4) {
+      const cv::v_float32x4 s4 = cv::v_setall_f32(scale);
+      for (; j + 4 <= small.width; j += 4) {
+        cv::v_float32x4 p0, p1, p2, p3;
+        cv::v_load_deinterleave(acc + 4 * j, p0, p1, p2, p3);
+        cv::v_store(out + j, ((p0 + p1) + (p2 + p3)) * s4);
+      }
+    }
+#endif
+    for (; j < small.width; ++j) {
+      float s = 0.0f;
+      for (int k = 0; k < f; ++k) s += acc[j * f + k];
+      out[j] = s * scale;
+    }
   }
   if (mask.empty()) {
     mask_small->release();
     return;
   }
-  cv::compare(mask(whole), 0, *scratch, cv::CMP_NE);
-  cv::resize(*scratch, *mask_small, small, 0, 0, cv::INTER_AREA);
-  cv::compare(*mask_small, 255, *mask_small, cv::CMP_EQ);
+  // A reduced pixel is valid only when all its pixels are.
+  mask_small->create(small, CV_8U);
+  row_min->resize(w);
+  uint8_t* mn = row_min->data();
+  for (int i = 0; i < small.height; ++i) {
+    std::copy_n(mask.ptr<uint8_t>(i * f), w, mn);
+    for (int k = 1; k < f; ++k) {
+      const uint8_t* in = mask.ptr<uint8_t>(i * f + k);
+      int x = 0;
+#if CV_SIMD128
+      for (; x + 16 <= w; x += 16)
+        cv::v_store(mn + x, cv::v_min(cv::v_load(mn + x), cv::v_load(in + x)));
+#endif
+      for (; x < w; ++x) mn[x] = std::min(mn[x], in[x]);
+    }
+    uint8_t* out = mask_small->ptr<uint8_t>(i);
+    for (int j = 0; j < small.width; ++j) {
+      out[j] = *std::min_element(mn + j * f, mn + j * f + f) != 0 ? 255 : 0;
+    }
+  }
 }
 
 }  // namespace
@@ -230,36 +459,43 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
       cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
       cv::Rect(0, 0, image.cols, image.rows);
   const cv::Rect inner(roi.x - ext.x, roi.y - ext.y, roi.width, roi.height);
+  // Float copy and validity (the mask, minus non-finite samples of float input), as whole-image
+  // OpenCV passes (vectorised; a scalar loop over the pixels cost more); then no-data filled with
+  // the valid mean so its edge is a small step. Erosion below keeps only pixels that neither a mask
+  // edge nor the image border (where the blur reflects the image) can reach through blur and Sobel.
+  // Outside the image counts as no data; outside `ext` but inside the image is farther than the
+  // erosion reaches.
   image(ext).convertTo(work_f32, CV_32F);
-
-  // Validity: the mask, minus non-finite samples of float input.
   if (mask.empty()) {
     work_mask.create(ext.size(), CV_8U);
     work_mask.setTo(255);
   } else {
     cv::compare(mask(ext), 0, work_mask, cv::CMP_NE);
   }
-  if (image.depth() == CV_32F && !cv::checkRange(work_f32, true)) {
-    cv::Mat& finite = scratch->finite;
-    cv::compare(cv::abs(work_f32), std::numeric_limits<float>::max(), finite, cv::CMP_LE);
-    cv::bitwise_and(work_mask, finite, work_mask);
-    cv::bitwise_not(finite, tmp);
-    work_f32.setTo(0.0f, tmp);
+  if (image.depth() == CV_32F &&
+      !cv::checkRange(work_f32, true, nullptr, -std::numeric_limits<float>::max(),
+                      std::numeric_limits<float>::max())) {
+    // Rare: non-finite samples are invalid (their value is replaced by the fill below).
+    for (int y = 0; y < ext.height; ++y) {
+      float* v = work_f32.ptr<float>(y);
+      uint8_t* ok = work_mask.ptr<uint8_t>(y);
+      for (int x = 0; x < ext.width; ++x) {
+        if (!(std::abs(v[x]) <= std::numeric_limits<float>::max())) {  // NaN: true
+          v[x] = 0.0f;
+          ok[x] = 0;
+        }
+      }
+    }
   }
-  // Fill the no-data area with the mean so its edge is a small step, then keep only pixels
-  // that neither a mask edge nor the image border (where the blur reflects the image) can
-  // reach through blur and Sobel. Outside the image counts as no data; outside `ext` but
-  // inside the image is farther than the erosion reaches.
-  if (!mask.empty() || image.depth() == CV_32F) {
-    const double fill = cv::mean(work_f32, work_mask)[0];
+  const int valid_count = cv::countNonZero(work_mask);
+  if (valid_count < ext.area()) {
+    const float fill =
+        valid_count > 0 ? static_cast<float>(cv::mean(work_f32, work_mask)[0]) : 0.0f;
     cv::bitwise_not(work_mask, tmp);
     work_f32.setTo(fill, tmp);
   }
-  const int e = 2 * filter.erode_px + 1;
-  cv::erode(work_mask, tmp, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(e, 1)),
-            cv::Point(-1, -1), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
-  cv::erode(tmp, work_mask, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(1, e)),
-            cv::Point(-1, -1), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  ErodeSquare(work_mask, filter.erode_px, &tmp, &scratch->eroded, &erode_pad_);
+  cv::swap(work_mask, scratch->eroded);
   double noise_std = *noise_std_io;
   if (noise_std < 0.0) {
     noise_std = options_.noise_floor_sigmas > 0.0 ? EstimateNoiseStd(work_f32, work_mask) : 0.0;
@@ -271,25 +507,14 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
     cv::sepFilter2D(work_f32, blurred, CV_32F, filter.gauss, filter.gauss, cv::Point(-1, -1), 0.0,
                     cv::BORDER_REFLECT);
   }
-  cv::Sobel(blurred(inner), gx_all, CV_32F, 1, 0, 3, 1.0, 0.0, cv::BORDER_ISOLATED);
-  cv::Sobel(blurred(inner), gy_all, CV_32F, 0, 1, 3, 1.0, 0.0, cv::BORDER_ISOLATED);
+  SobelXY(blurred, inner, &gx_all, &gy_all);
 
   const float floor =
       static_cast<float>(options_.noise_floor_sigmas * noise_std * filter.noise_gain);
   out->region = roi;
   out->floor_sq = floor * floor;
-  out->valid.create(roi.size(), CV_32F);
-  double valid_px = 0.0;
-  for (int y = 0; y < roi.height; ++y) {
-    const uint8_t* m = work_mask.ptr<uint8_t>(y + inner.y) + inner.x;
-    float* v = out->valid.ptr<float>(y);
-    int row_valid = 0;
-    for (int x = 0; x < roi.width; ++x) {
-      v[x] = m[x] ? 1.0f : 0.0f;
-      row_valid += m[x] ? 1 : 0;
-    }
-    valid_px += row_valid;
-  }
+  work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
+  const double valid_px = cv::countNonZero(work_mask(inner));
   out->valid_px = valid_px;
   Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
   if (unit) {
@@ -571,9 +796,9 @@ bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point of
   if (both.empty()) return false;
   const cv::Rect in_t = both - t.tl();
   const cv::Rect in_b = both + offset - bfield.region.tl();
-  const double num =
-      tfield.cos_w(in_t).dot(bfield.cos_w(in_b)) + tfield.sin_w(in_t).dot(bfield.sin_w(in_b));
-  const double den = tfield.den_w(in_t).dot(bfield.den_w(in_b));
+  double num = 0.0, den = 0.0;
+  FieldSums(tfield.cos_w, tfield.sin_w, tfield.den_w, bfield.cos_w, bfield.sin_w, bfield.den_w,
+            in_t, in_b, &num, &den);
   if (!(den >= 0.5)) return false;
   *scd = std::clamp(num / den, -1.0, 1.0);
   *criterion =
@@ -581,25 +806,72 @@ bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point of
   return true;
 }
 
-double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift) {
-  if (!(shift.cwiseAbs().maxCoeff() < 2.0)) return -std::numeric_limits<double>::infinity();
-  const Field& source = fine_scratch_.base_field;
-  // shifted(x) = gradient(x + shift); the reflected border only reaches the outer 2 px, which
-  // Refine's margin keeps out of the overlap.
-  CubicShift(fine_scratch_.gx, shift, &shifted_gx_);
-  CubicShift(fine_scratch_.gy, shift, &shifted_gy_);
-  Field& field = shift_scratch_.base_field;
-  field.region = source.region;
-  field.floor_sq = source.floor_sq;
-  field.valid = source.valid;  // Shared: Normalise does not write it.
-  Normalise(shifted_gx_, shifted_gy_, 0.0, &field);
-  const Field& templ_unit =
+double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift, double* scd) {
+  constexpr double kNone = -std::numeric_limits<double>::infinity();
+  if (!(shift.cwiseAbs().maxCoeff() < 2.0)) return kNone;
+  const Field& base = fine_scratch_.base_field;
+  const Field& templ =
       options_.magnitude_weight_cap > 0.0 ? fine_scratch_.templ_unit : fine_scratch_.templ_field;
-  double criterion = 0.0, scd = 0.0;
-  if (!Evaluate(templ_unit, field, offset, &criterion, &scd)) {
-    return -std::numeric_limits<double>::infinity();
+  const cv::Rect both = templ.region & (base.region - offset);
+  if (both.empty()) return kNone;
+  const cv::Rect in_t = both - templ.region.tl();
+  const cv::Rect in_b = both + offset - base.region.tl();
+  // shifted(x) = gradient(x + shift) on the overlap only (gx, gy cover base.region); reads past
+  // the gradients' edge are clamped, and reach at most 2 px in, where Refine's margin keeps the
+  // overlap out.
+  CubicShiftRect(fine_scratch_.gx, in_b, shift, &shifted_gx_, &shift_tmp_);
+  CubicShiftRect(fine_scratch_.gy, in_b, shift, &shifted_gy_, &shift_tmp_);
+  // Unit vectors of the shifted gradients (Normalise without weighting) dotted with the
+  // template's on the fly: num = sum t . b / |b| over oriented base pixels.
+  const float floor_sq = base.floor_sq;
+  const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
+  const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
+  double num = 0.0, den = 0.0;
+  for (int y = 0; y < both.height; ++y) {
+    const float* tc = templ.cos_w.ptr<float>(in_t.y + y) + in_t.x;
+    const float* ts = templ.sin_w.ptr<float>(in_t.y + y) + in_t.x;
+    const float* td = templ.den_w.ptr<float>(in_t.y + y) + in_t.x;
+    const float* v = base.valid.ptr<float>(in_b.y + y) + in_b.x;
+    const float* gx = shifted_gx_.ptr<float>(y);
+    const float* gy = shifted_gy_.ptr<float>(y);
+    float row_n = 0.0f, row_d = 0.0f;
+    int x = 0;
+#if CV_SIMD128
+    if (!soft) {
+      const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+      const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
+      const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
+      cv::v_float32x4 vn = zero, vd = zero;
+      for (; x + 4 <= both.width; x += 4) {
+        const cv::v_float32x4 bx = cv::v_load(gx + x), by = cv::v_load(gy + x);
+        const cv::v_float32x4 valid = cv::v_load(v + x);
+        const cv::v_float32x4 m2 = bx * bx + by * by;
+        const cv::v_float32x4 keep = (valid != zero) & (m2 > floor4) & (m2 > zero);
+        const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
+        vn += (cv::v_load(tc + x) * bx + cv::v_load(ts + x) * by) * inv;
+        vd += cv::v_load(td + x) * (mask_out_flat ? cv::v_select(keep, one, zero) : valid);
+      }
+      row_n = cv::v_reduce_sum(vn);
+      row_d = cv::v_reduce_sum(vd);
+    }
+#endif
+    for (; x < both.width; ++x) {
+      const float bx = gx[x], by = gy[x];
+      const bool is_valid = v[x] != 0.0f;
+      const float m2 = bx * bx + by * by;
+      const bool oriented = is_valid && m2 > floor_sq && m2 > 0.0f;
+      float inv = oriented ? 1.0f / std::sqrt(m2) : 0.0f;
+      if (soft && is_valid) inv = std::sqrt(m2) / (m2 + floor_sq + 1e-30f);
+      row_n += (tc[x] * bx + ts[x] * by) * inv;
+      row_d += td[x] * (mask_out_flat ? (oriented ? 1.0f : 0.0f) : v[x]);
+    }
+    num += row_n;
+    den += row_d;
   }
-  return criterion;
+  if (!(den >= 0.5)) return kNone;
+  if (scd) *scd = std::clamp(num / den, -1.0, 1.0);
+  return options_.peak_criterion == ScdPeakCriterion::kSignificance ? num / std::sqrt(den)
+                                                                    : num / den;
 }
 
 ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_mask,
@@ -637,7 +909,7 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
                &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
-               &base_noise, weighted ? &fine_scratch_.base_unit : nullptr);
+               &base_noise);
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;
@@ -691,11 +963,10 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   if (u > kNone && d > kNone) peak->subpixel.y() = RefineAxis(options_.subpixel, u, c, d);
   peak->ratio = scd_grid[(at.y - start.y + half) * side + (at.x - start.x + half)];  // SCD
   if (weighted) {
-    // The reported score is the paper's (unweighted) SCD.
-    double unused = 0.0, scd = 0.0;
-    if (Evaluate(fine_scratch_.templ_unit, fine_scratch_.base_unit, at, &unused, &scd)) {
-      peak->ratio = scd;
-    }
+    // The reported score is the paper's (unweighted) SCD: unit vectors of the base gradients
+    // made on the fly (a zero shift resamples nothing), no unit field of the base kept.
+    double scd = 0.0;
+    if (EvaluateShifted(at, Eigen::Vector2d::Zero(), &scd) > kNone) peak->ratio = scd;
   }
   const double h = options_.subpixel_step_px;
   if (h > 0.0) {
@@ -805,9 +1076,9 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
       return fail(Status::kTooLittleOverlap, "the images overlap by less than a reduced pixel");
     }
     Reduce(base(b_crop), base_mask.empty() ? cv::Mat() : base_mask(b_crop), f, &base_small_,
-           &base_mask_small_, &reduce_tmp_);
+           &base_mask_small_, &reduce_tmp_, &reduce_sum_, &erode_pad_);
     Reduce(templ(t_crop), templ_mask.empty() ? cv::Mat() : templ_mask(t_crop), f, &templ_small_,
-           &templ_mask_small_, &reduce_tmp_);
+           &templ_mask_small_, &reduce_tmp_, &reduce_sum_, &erode_pad_);
     // Template crop pixel i <-> template f i + T0, base crop j <-> base f j + B0, so the full
     // offset is u = f (j - i) + (B0 - T0); the coarse window covers the fine one.
     const cv::Point shift = b_crop.tl() - t_crop.tl();

@@ -5,12 +5,16 @@
 
 #include <cmath>
 #include <limits>
+#include <opencv2/core/eigen.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
 #include <string>
 #include <vector>
 
+#include "irmosaic/frame_geometry.h"
+#include "irmosaic/pos.h"
+#include "irmosaic/simulator.h"
 #include "test_data.h"
 
 namespace irmosaic {
@@ -238,6 +242,110 @@ TEST(ScdTest, FifteenToTwentyFivePercentOverlapAtPsnr20) {
   }
   std::printf("SCD 15-25%% overlap, PSNR 20 dB: %d of %d within 1 px\n", good, cases);
   EXPECT_GE(good, std::ceil(0.95 * cases)) << good << " of " << cases << " within 1 px";
+}
+
+// A simulated frame warped onto the mosaic grid by its true homography: the orthoimage, its
+// validity and the mosaic pixel of its top-left pixel.
+struct SimOrtho {
+  cv::Mat image, mask;
+  cv::Point origin;
+  Eigen::Vector2d pos_error = Eigen::Vector2d::Zero();  // measured minus true centre, mosaic px
+};
+
+SimOrtho OrthoOfSimFrame(const FlightSimulator& sim, const SimFrame& frame, double psnr_db,
+                         cv::RNG* noise_rng) {
+  const CameraModel& cam = sim.camera();
+  // Noise at psnr_db against the frame's own range (as the 8-bit range of the real frames).
+  cv::Mat f32;
+  frame.image.convertTo(f32, CV_32F);
+  double lo = 0.0, hi = 0.0;
+  cv::minMaxLoc(f32, &lo, &hi);
+  cv::Mat noise(f32.size(), CV_32F);
+  noise_rng->fill(noise, cv::RNG::NORMAL, 0.0, (hi - lo) / std::pow(10.0, psnr_db / 20.0));
+  f32 += noise;
+  const Eigen::Matrix3d& h = frame.true_mosaic_from_image;
+  std::vector<cv::Point2f> corners;
+  for (const Eigen::Vector2d& c :
+       {Eigen::Vector2d(0, 0), Eigen::Vector2d(cam.width, 0),
+        Eigen::Vector2d(cam.width, cam.height), Eigen::Vector2d(0, cam.height)}) {
+    const Eigen::Vector3d m = h * c.homogeneous();
+    corners.emplace_back(float(m.x() / m.z()), float(m.y() / m.z()));
+  }
+  const cv::Rect box = cv::boundingRect(corners);
+  SimOrtho o;
+  o.origin = box.tl();
+  cv::Mat mosaic_from_image;
+  const Eigen::Matrix3d canvas_from_image =
+      (Eigen::Matrix3d() << 1, 0, -box.x, 0, 1, -box.y, 0, 0, 1).finished() * h;
+  cv::eigen2cv(canvas_from_image, mosaic_from_image);
+  cv::warpPerspective(f32, o.image, mosaic_from_image, box.size(), cv::INTER_LINEAR);
+  cv::warpPerspective(cv::Mat(f32.size(), CV_8U, cv::Scalar(255)), o.mask, mosaic_from_image,
+                      box.size(), cv::INTER_NEAREST);
+  o.image.setTo(0.0f, ~o.mask);
+  // Where the logged (erroneous) POS puts the frame centre instead.
+  const FrameGeometry measured = ComputeFrameGeometry(cam, PoseFromRecord(frame.measured_pos),
+                                                      sim.frame(), sim.grid(), FlatGround(0.0));
+  EXPECT_TRUE(measured.ok) << measured.problem;
+  const Eigen::Vector3d centre(cam.width / 2.0, cam.height / 2.0, 1.0);
+  const Eigen::Vector3d m = measured.mosaic_from_image * centre, t = h * centre;
+  o.pos_error = m.hnormalized() - t.hnormalized();
+  return o;
+}
+
+// Simulator frames (oblique sweep, default POS errors: 2 m position, 0.3 deg attitude per
+// frame), PSNR 20 dB, each orthorectified by its true pose; consecutive frames of a sweep
+// (about 25 % overlap) and frames of consecutive sweeps (about 15 %). The predicted offset
+// carries the pair's pose error as the logged POS gives it, search radius 64 px.
+TEST(ScdTest, SimulatorFramesAtLowOverlapAndPsnr20) {
+  SynthOptions options;
+  options.origin_lat_deg = 47.2;
+  options.origin_lon_deg = 8.5;
+  options.frame_count = 32;
+  options.sensor.noise = false;  // Added below at a PSNR on the frame's own range.
+  FlightSimulator sim(options);
+  cv::RNG noise_rng(21);
+  std::vector<SimOrtho> orthos;
+  for (int i = 0; i < sim.frame_count(); ++i) {
+    orthos.push_back(OrthoOfSimFrame(sim, sim.Render(i), 20.0, &noise_rng));
+  }
+  const int per_sweep = options.frames_per_sweep;
+  ScdMatcher matcher;
+  int cases = 0, good = 0, low_cases = 0, low_good = 0;  // low: 15-25 % overlap
+  double min_overlap = 1.0, max_overlap = 0.0, max_pos_error = 0.0;
+  for (int i = 0; i < sim.frame_count(); ++i) {
+    for (const int j : {i + 1, i + per_sweep}) {
+      if (j >= sim.frame_count() || (j == i + 1 && j % per_sweep == 0)) continue;
+      const SimOrtho &b = orthos[i], &t = orthos[j];
+      const cv::Point truth_px = t.origin - b.origin;
+      Pair p{b.image, b.mask, t.image, t.mask, Eigen::Vector2d(truth_px.x, truth_px.y)};
+      const double overlap = ValidOverlap(p, truth_px);
+      const Eigen::Vector2d pose_error = t.pos_error - b.pos_error;
+      min_overlap = std::min(min_overlap, overlap);
+      max_overlap = std::max(max_overlap, overlap);
+      max_pos_error = std::max(max_pos_error, pose_error.cwiseAbs().maxCoeff());
+      const ScdResult r =
+          matcher.Match(p.base, p.base_mask, p.templ, p.templ_mask, p.truth + pose_error, 64.0);
+      ++cases;
+      const bool low = overlap >= 0.15 && overlap <= 0.25;
+      low_cases += low;
+      const double e = r.ok() ? Error(r, p.truth) : std::numeric_limits<double>::infinity();
+      if (e < 1.0) {
+        ++good;
+        low_good += low;
+      } else {
+        std::printf("miss: frames %d-%d overlap %.2f: %s (%s) error %.2f score %.3f ratio %.2f\n",
+                    i, j, overlap, ToString(r.status), r.reason.c_str(), e, r.score, r.peak_ratio);
+      }
+    }
+  }
+  std::printf(
+      "SCD simulator pairs, overlap %.2f-%.2f, pose error up to %.1f px, PSNR 20 dB: %d of %d "
+      "within 1 px (15-25 %% overlap: %d of %d)\n",
+      min_overlap, max_overlap, max_pos_error, good, cases, low_good, low_cases);
+  EXPECT_GE(good, std::ceil(0.95 * cases)) << good << " of " << cases << " within 1 px";
+  // The case proper: enough pairs at 15-25 % overlap, and >= 95 % of them within 1 px.
+  EXPECT_GE(low_cases, 20);
+  EXPECT_GE(low_good, std::ceil(0.95 * low_cases)) << low_good << " of " << low_cases;
 }
 
 TEST(ScdTest, BadInputGivesAStatusWithAReason) {

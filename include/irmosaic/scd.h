@@ -1,6 +1,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
 #include <map>
 #include <opencv2/core.hpp>
 #include <opencv2/core/hal/hal.hpp>
@@ -146,9 +147,9 @@ class IRMOSAIC_EXPORT ScdMatcher {
   };
   // Buffers of one pyramid level: kept apart so that sizes do not alternate between calls.
   struct Scratch {
-    cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, finite;
+    cv::Mat work_f32, work_mask, blurred, gx, gy, tmp, eroded;
     Field templ_field, base_field;
-    Field templ_unit, base_unit;  // unit-vector fields (fine level, weighting on)
+    Field templ_unit;  // unit-vector field of the template (fine level, weighting on)
   };
   // *noise_std: the image noise std to use, or negative to estimate it (then written back).
   // unit (optional): also the unit-vector field of the same gradients.
@@ -166,9 +167,11 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // Criterion and SCD at one offset from the fine fields (false when nothing overlaps).
   bool Evaluate(const Field& templ_field, const Field& base_field, cv::Point offset,
                 double* criterion, double* scd) const;
-  // Criterion at integer `offset` with the fine base gradients resampled (cubic) at a sub-pixel
-  // shift: they are band-limited by the pre-blur, and blur and Sobel commute with the shift.
-  double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift);
+  // Criterion at integer `offset` of the template's unit field against the fine base gradients
+  // resampled (cubic) at a sub-pixel shift, normalised on the fly: they are band-limited by the
+  // pre-blur, and blur and Sobel commute with the shift.
+  // scd (optional): the unweighted SCD there.
+  double EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shift, double* scd = nullptr);
   // Fills a field's vectors and weights from gradients; validity already in out->valid.
   // weight_cap > 0: vectors weighted by min(weight_cap, m / median m) (magnitude_weight_cap).
   void Normalise(const cv::Mat& gx, const cv::Mat& gy, double weight_cap, Field* out);
@@ -180,7 +183,9 @@ class IRMOSAIC_EXPORT ScdMatcher {
   Filter fine_, coarse_;
   // Scratch, reused between calls.
   Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
-  cv::Mat shifted_gx_, shifted_gy_;
+  cv::Mat shifted_gx_, shifted_gy_, shift_tmp_;
+  std::vector<uint8_t> erode_pad_;  // row scratch of the erosion and the reduction
+  std::vector<float> reduce_sum_;
   std::vector<float> magnitudes_;  // sample for the median gradient magnitude
   cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
