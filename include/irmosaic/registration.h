@@ -84,8 +84,8 @@ struct FineRegistrationOptions {
   // Converged when an update moves every overlap corner by less than this (px).
   double dense_convergence_px = 0.01;
   // Accept criterion of the dense fit: predicted std of the homography at the overlap
-  // corners (px).
-  double max_dense_sigma_px = 0.25;
+  // corners (px). 1/3: the 3-sigma corner error stays under the 1 px a mosaic seam needs.
+  double max_dense_sigma_px = 1.0 / 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
   double min_inlier_ratio = 0.5;
