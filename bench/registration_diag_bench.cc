@@ -92,6 +92,10 @@ int main(int argc, char** argv) {
       options.dense_gradient_sigma = std::atof(argv[++i]);
     else if (!std::strcmp(argv[i], "--joint"))
       options.joint_refinement = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--lsm-iter"))
+      options.lsm.max_iterations = std::atoi(argv[++i]);
+    else if (!std::strcmp(argv[i], "--keys"))
+      options.keypoints.max_points = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--dense-iter"))
       options.dense_iterations = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--max-dense-sigma"))
