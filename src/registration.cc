@@ -155,6 +155,13 @@ bool FineRegistrationOptions::IsValid(std::string* error) const {
   if (margin_px < 0) return fail("margin_px must be >= 0");
   if (!(gain_blur_sigma_px > 0.0)) return fail("gain_blur_sigma_px must be > 0");
   if (joint_iterations < 1) return fail("joint_iterations must be >= 1");
+  if (dense_coarsest_level < 0 || dense_coarsest_level > 5 || dense_finest_level < 0 ||
+      dense_finest_level > dense_coarsest_level) {
+    return fail("dense levels must satisfy 0 <= dense_finest_level <= dense_coarsest_level <= 5");
+  }
+  if (dense_iterations < 1) return fail("dense_iterations must be >= 1");
+  if (!(dense_convergence_px > 0.0)) return fail("dense_convergence_px must be > 0");
+  if (!(max_dense_sigma_px > 0.0)) return fail("max_dense_sigma_px must be > 0");
   if (joint_grid_step_px < 0) return fail("joint_grid_step_px must be >= 0");
   if (!(max_joint_sigma_px > 0.0)) return fail("max_joint_sigma_px must be > 0");
   if (!(prior_linear_sigma >= 0.0 && prior_perspective_sigma_per_px > 0.0)) {
@@ -239,21 +246,27 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     tie.weight = std::min(1e4, 1.0 / std::max(1e-8, r.position_sigma_px * r.position_sigma_px));
     out.tie_points.push_back(tie);
   }
-  bool joint = options_.joint_refinement && options_.lsm.method == LsmMethod::kFast;
+  // The dense fit supersedes the joint FLSM fit (both serve noisy pairs; the dense one uses
+  // every overlap pixel).
+  bool joint = options_.joint_refinement && !options_.dense_refinement &&
+               options_.lsm.method == LsmMethod::kFast;
   const int needed = std::max(4, options_.min_inliers);
   bool have_initial = false;
   if (static_cast<int>(out.tie_points.size()) >= needed) {
     have_initial = FitRansac(&out);
   }
-  if (have_initial && joint) {
-    // Clean pairs: the tie points are more precise than the joint fit; keep them.
+  bool run_dense = options_.dense_refinement;
+  if (have_initial && (joint || run_dense)) {
+    // Clean pairs: the tie points are more precise than the joint or dense fit; keep them.
     double sum_sq = 0.0;
     MarkInliers(&out, &sum_sq);
     const double rms = std::sqrt(sum_sq / std::max(1, out.inliers));
-    joint = out.inliers < needed || rms > options_.joint_above_residual_px;
+    const bool noisy = out.inliers < needed || rms > options_.joint_above_residual_px;
+    joint = joint && noisy;
+    run_dense = run_dense && noisy;
   }
   if (!have_initial) {
-    if (!joint) {
+    if (!joint && !options_.dense_refinement) {
       out.status = static_cast<int>(out.tie_points.size()) < needed
                        ? PairRegistration::Status::kTooFewTiePoints
                        : PairRegistration::Status::kRansacFailed;
@@ -263,8 +276,8 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
                              " (of " + std::to_string(out.keypoints) + " key points)";
       return out;
     }
-    // Too few single-patch matches (heavy noise, low texture): the joint solve starts from
-    // the coarse translation instead.
+    // Too few single-patch matches (heavy noise, low texture): the joint or dense solve starts
+    // from the coarse translation instead.
     out.base_from_template = Eigen::Matrix3d::Identity();
     out.base_from_template.topRightCorner<2, 1>() = offset;
   }
@@ -293,6 +306,31 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
       return out;
     }
   }
+  bool dense = false;
+  if (run_dense) {
+    Eigen::Matrix3d h = out.base_from_template;
+    const DenseFit fit = DenseRefine(base_mask, templ_mask, &h);
+    out.dense_pixels = fit.pixels;
+    out.dense_iterations = fit.iterations;
+    out.dense_sigma_px = fit.sigma_px;
+    out.dense_residual_rms = fit.residual_rms;
+    if (fit.ok && (have_initial || fit.sigma_px <= options_.max_dense_sigma_px)) {
+      out.base_from_template = h;
+      dense = true;
+    } else if (!have_initial && !joint) {
+      out.status = static_cast<int>(out.tie_points.size()) < needed
+                       ? PairRegistration::Status::kTooFewTiePoints
+                       : PairRegistration::Status::kRansacFailed;
+      out.reason = (out.status == PairRegistration::Status::kRansacFailed
+                        ? std::string("RANSAC found no homography")
+                        : Figure("converged tie points", out.tie_points.size(), "below", needed) +
+                              " (of " + std::to_string(out.keypoints) + " key points)") +
+                   (fit.ok ? Figure("; dense fit sigma", fit.sigma_px, "px above",
+                                    options_.max_dense_sigma_px)
+                           : std::string("; the dense fit failed"));
+      return out;
+    }
+  }
   double sum_sq = 0.0;
   MarkInliers(&out, &sum_sq);
   out.residual_rms_px = out.inliers > 0 ? std::sqrt(sum_sq / out.inliers) : 0.0;
@@ -305,12 +343,26 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   }
 
   out.status = PairRegistration::Status::kRejected;
-  if (joint && !(out.joint_sigma_px <= options_.max_joint_sigma_px)) {
+  if (dense && !(out.dense_sigma_px <= options_.max_dense_sigma_px)) {
+    out.reason = Figure("predicted homography sigma (dense fit)", out.dense_sigma_px, "px above",
+                        options_.max_dense_sigma_px);
+    return out;
+  }
+  if (!dense && joint && !(out.joint_sigma_px <= options_.max_joint_sigma_px)) {
     out.reason = Figure("predicted homography sigma", out.joint_sigma_px, "px above",
                         options_.max_joint_sigma_px);
     return out;
   }
-  if (out.inliers < options_.min_inliers) {
+  if (dense && out.inliers < options_.min_inliers) {
+    // Under heavy noise few patches converge; the dense fit's own figures decide, with the
+    // tie points (when there are enough) as a check against a wrong basin.
+    if (static_cast<int>(out.tie_points.size()) >= options_.min_inliers &&
+        out.inlier_ratio < options_.min_inlier_ratio) {
+      out.reason = Figure("inlier ratio", out.inlier_ratio, "below", options_.min_inlier_ratio);
+    } else {
+      out.status = PairRegistration::Status::kOk;
+    }
+  } else if (out.inliers < options_.min_inliers) {
     out.reason = Figure("inliers", out.inliers, "below", options_.min_inliers);
   } else if (out.inlier_ratio < options_.min_inlier_ratio) {
     out.reason = Figure("inlier ratio", out.inlier_ratio, "below", options_.min_inlier_ratio);
@@ -546,6 +598,297 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   }
   fit.sigma_px = std::sqrt(variance / 4.0);
   *homography = h / h(2, 2);
+  return fit;
+}
+
+namespace {
+
+// Keys (a = -0.5) cubic interpolation weights for a fractional offset t in [0, 1).
+inline void CubicWeights(float t, float* w) {
+  const float t2 = t * t, t3 = t2 * t;
+  w[0] = -0.5f * t3 + t2 - 0.5f * t;
+  w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
+  w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
+  w[3] = 0.5f * t3 - 0.5f * t2;
+}
+
+// Bicubic sample of a CV_32F image; the caller keeps (x, y) in [1, size - 3).
+inline float SampleCubic(const cv::Mat& image, double x, double y) {
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  float wx[4], wy[4];
+  CubicWeights(static_cast<float>(x - x0), wx);
+  CubicWeights(static_cast<float>(y - y0), wy);
+  const size_t step = image.step1();
+  const float* p = image.ptr<float>(y0 - 1) + x0 - 1;
+  float sum = 0.0f;
+  for (int j = 0; j < 4; ++j, p += step) {
+    sum += wy[j] * (wx[0] * p[0] + wx[1] * p[1] + wx[2] * p[2] + wx[3] * p[3]);
+  }
+  return sum;
+}
+
+// The covariance above treats the level's samples as independent; cv::pyrDown's kernel
+// correlates the noise of neighbouring samples. For a signal smoother than the sample spacing
+// the variance of a least-squares estimate grows by the sum of the noise autocorrelation over
+// all lags (relative to lag 0), per axis. Returns the factor on a standard deviation.
+double PyramidNoiseFactor(int level) {
+  std::vector<double> h = {1.0};
+  for (int l = 0; l < level; ++l) {
+    // Kernel of one more pyrDown, in full-resolution taps: [1 4 6 4 1] / 16 at stride 2^l.
+    const int stride = 1 << l;
+    std::vector<double> next(h.size() + 4 * stride, 0.0);
+    const double k[5] = {1 / 16.0, 4 / 16.0, 6 / 16.0, 4 / 16.0, 1 / 16.0};
+    for (size_t i = 0; i < h.size(); ++i) {
+      for (int t = 0; t < 5; ++t) next[i + t * stride] += h[i] * k[t];
+    }
+    h = next;
+  }
+  const int stride = 1 << level;
+  double r0 = 0.0, total = 0.0;
+  for (int m = -static_cast<int>(h.size()); m <= static_cast<int>(h.size()); ++m) {
+    double r = 0.0;
+    for (int i = 0; i < static_cast<int>(h.size()); ++i) {
+      const int j = i + m * stride;
+      if (j >= 0 && j < static_cast<int>(h.size())) r += h[i] * h[j];
+    }
+    if (m == 0) r0 = r;
+    total += r;
+  }
+  return total / r0;  // Per axis on the variance = both axes on the standard deviation.
+}
+
+// Bounding box of the template pixels that the homography maps into the base image.
+cv::Rect2d OverlapBox(const Eigen::Matrix3d& base_from_template, cv::Size base, cv::Size templ) {
+  const Eigen::Matrix3d inv = base_from_template.inverse();
+  double x0 = 1e18, y0 = 1e18, x1 = -1e18, y1 = -1e18;
+  for (const Eigen::Vector2d& c :
+       {Eigen::Vector2d(0, 0), Eigen::Vector2d(base.width - 1, 0),
+        Eigen::Vector2d(base.width - 1, base.height - 1), Eigen::Vector2d(0, base.height - 1)}) {
+    const Eigen::Vector3d q = inv * c.homogeneous();
+    if (!(q.z() > 0)) return {};
+    x0 = std::min(x0, q.x() / q.z()), y0 = std::min(y0, q.y() / q.z());
+    x1 = std::max(x1, q.x() / q.z()), y1 = std::max(y1, q.y() / q.z());
+  }
+  x0 = std::max(x0, 0.0), y0 = std::max(y0, 0.0);
+  x1 = std::min(x1, templ.width - 1.0), y1 = std::min(y1, templ.height - 1.0);
+  if (!(x1 > x0 && y1 > y0)) return {};
+  return {x0, y0, x1 - x0, y1 - y0};
+}
+
+}  // namespace
+
+FineRegistrar::DenseFit FineRegistrar::DenseRefine(const cv::Mat& base_mask,
+                                                   const cv::Mat& templ_mask,
+                                                   Eigen::Matrix3d* homography) {
+  // Inverse-compositional Gauss-Newton over every overlap pixel of a pyramid level: the
+  // template's gradients (and so the normal matrix) are computed once per level; each
+  // iteration resamples the base (bicubic) at the homography's image of the samples.
+  // Unknowns: 8 homography parameters in coordinates centred on the overlap and scaled by
+  // 100 px (as the distortion prior), a gain and an offset.
+  constexpr double kScale = 100.0;
+  DenseFit fit;
+  Eigen::Matrix3d h = *homography;
+  const cv::Rect2d box = OverlapBox(h, base_f_.size(), templ_f_.size());
+  if (box.width < 16 || box.height < 16) return fit;
+  const int top = options_.dense_coarsest_level;
+  const int bottom = std::min(top, options_.dense_finest_level);
+  const int reach = (2 << top) + 4;  // Pyramid kernel and gradient support, full-res px.
+  const cv::Rect templ_roi =
+      cv::Rect(static_cast<int>(box.x) - reach, static_cast<int>(box.y) - reach,
+               static_cast<int>(box.width) + 2 * reach + 1,
+               static_cast<int>(box.height) + 2 * reach + 1) &
+      cv::Rect(0, 0, templ_f_.cols, templ_f_.rows);
+  double bx0 = 1e18, by0 = 1e18, bx1 = -1e18, by1 = -1e18;
+  for (const Eigen::Vector2d& c :
+       {Eigen::Vector2d(templ_roi.x, templ_roi.y), Eigen::Vector2d(templ_roi.br().x, templ_roi.y),
+        Eigen::Vector2d(templ_roi.br().x, templ_roi.br().y),
+        Eigen::Vector2d(templ_roi.x, templ_roi.br().y)}) {
+    const Eigen::Vector2d q = (h * c.homogeneous()).hnormalized();
+    bx0 = std::min(bx0, q.x()), by0 = std::min(by0, q.y());
+    bx1 = std::max(bx1, q.x()), by1 = std::max(by1, q.y());
+  }
+  if (!(std::isfinite(bx0) && std::isfinite(bx1) && std::isfinite(by0) && std::isfinite(by1))) {
+    return fit;
+  }
+  const cv::Rect base_roi =
+      cv::Rect(static_cast<int>(std::floor(bx0)) - reach, static_cast<int>(std::floor(by0)) - reach,
+               static_cast<int>(bx1 - bx0) + 2 * reach + 2,
+               static_cast<int>(by1 - by0) + 2 * reach + 2) &
+      cv::Rect(0, 0, base_f_.cols, base_f_.rows);
+  if (templ_roi.width < 16 || templ_roi.height < 16 || base_roi.width < 16 ||
+      base_roi.height < 16) {
+    return fit;
+  }
+  templ_levels_.resize(top + 1);
+  base_levels_.resize(top + 1);
+  templ_levels_[0] = templ_f_(templ_roi);
+  base_levels_[0] = base_f_(base_roi);
+  for (int level = 1; level <= top; ++level) {
+    cv::pyrDown(templ_levels_[level - 1], templ_levels_[level]);
+    cv::pyrDown(base_levels_[level - 1], base_levels_[level]);
+  }
+  const cv::Mat templ_integral = ValidIntegral(templ_mask);
+  const cv::Mat base_integral = ValidIntegral(base_mask);
+  const Eigen::Vector2d centre(box.x + 0.5 * box.width, box.y + 0.5 * box.height);
+  Eigen::Matrix3d from_templ = Eigen::Matrix3d::Identity();
+  from_templ.topLeftCorner<2, 2>() /= kScale;
+  from_templ.topRightCorner<2, 1>() = -centre / kScale;
+  const Eigen::Matrix3d to_templ = from_templ.inverse();
+  const Eigen::Vector2d corners[4] = {{box.x, box.y},
+                                      {box.x + box.width, box.y},
+                                      {box.x + box.width, box.y + box.height},
+                                      {box.x, box.y + box.height}};
+  const double prior_sigma[8] = {options_.prior_linear_sigma,
+                                 options_.prior_linear_sigma,
+                                 0,
+                                 options_.prior_linear_sigma,
+                                 options_.prior_linear_sigma,
+                                 0,
+                                 options_.prior_perspective_sigma_per_px * kScale,
+                                 options_.prior_perspective_sigma_per_px * kScale};
+  using Vector10 = Eigen::Matrix<double, 10, 1>;
+  using Matrix10 = Eigen::Matrix<double, 10, 10>;
+  constexpr int kStride = 11;  // Per sample: x, y (full-res template px), T, 8 geometric terms.
+  double gain = 1.0, offset = 0.0;
+  Matrix10 normal = Matrix10::Identity();
+  for (int level = top; level >= bottom; --level) {
+    const cv::Mat& t = templ_levels_[level];
+    const cv::Mat& b = base_levels_[level];
+    const double unit = static_cast<double>(1 << level);
+    const int support = (1 << (level + 1)) + 1;  // Mask check half-size, full-res px.
+    // Samples: level pixels inside the overlap box, valid in both masks over their support.
+    dense_rows_.clear();
+    Matrix10 h0 = Matrix10::Zero();
+    const double grad_scale = 0.5 * kScale / unit;  // Central difference -> per 100 px.
+    // Gradients of a smoothed template: noisy gradients inflate the normal matrix (slow,
+    // shrunken steps and an optimistic covariance) without adding information.
+    if (options_.dense_gradient_sigma > 0) {
+      cv::GaussianBlur(t, smoothed_, cv::Size(), options_.dense_gradient_sigma);
+    } else {
+      smoothed_ = t;
+    }
+    for (int j = 2; j < t.rows - 2; ++j) {
+      const float* row = t.ptr<float>(j);
+      const float* up = smoothed_.ptr<float>(j - 1);
+      const float* down = smoothed_.ptr<float>(j + 1);
+      const float* mid = smoothed_.ptr<float>(j);
+      const double y = templ_roi.y + unit * j;
+      if (y < box.y || y > box.y + box.height) continue;
+      for (int i = 2; i < t.cols - 2; ++i) {
+        const double x = templ_roi.x + unit * i;
+        if (x < box.x || x > box.x + box.width) continue;
+        const int xi = static_cast<int>(std::lround(x)), yi = static_cast<int>(std::lround(y));
+        if (!templ_integral.empty() &&
+            !SquareValid(templ_integral, templ_f_.size(), xi, yi, support)) {
+          continue;
+        }
+        const Eigen::Vector2d q = (h * Eigen::Vector3d(x, y, 1)).hnormalized();
+        const double qx = (q.x() - base_roi.x) / unit, qy = (q.y() - base_roi.y) / unit;
+        if (!(qx >= 3 && qy >= 3 && qx < b.cols - 5 && qy < b.rows - 5)) continue;
+        if (!base_integral.empty() &&
+            !SquareValid(base_integral, base_f_.size(), static_cast<int>(std::lround(q.x())),
+                         static_cast<int>(std::lround(q.y())), support)) {
+          continue;
+        }
+        const double u = (x - centre.x()) / kScale, v = (y - centre.y()) / kScale;
+        const double gx = grad_scale * (mid[i + 1] - mid[i - 1]);
+        const double gy = grad_scale * (down[i] - up[i]);
+        const double radial = gx * u + gy * v;
+        Vector10 jrow;
+        jrow << gx * u, gx * v, gx, gy * u, gy * v, gy, -radial * u, -radial * v, row[i], 1.0;
+        h0.selfadjointView<Eigen::Lower>().rankUpdate(jrow);
+        dense_rows_.push_back(static_cast<float>(x));
+        dense_rows_.push_back(static_cast<float>(y));
+        dense_rows_.push_back(row[i]);
+        for (int k = 0; k < 8; ++k) dense_rows_.push_back(static_cast<float>(jrow(k)));
+      }
+    }
+    h0 = h0.selfadjointView<Eigen::Lower>();
+    const int samples = static_cast<int>(dense_rows_.size()) / kStride;
+    if (samples < 200) return fit;
+    fit.pixels = samples;
+    for (int iteration = 0; iteration < options_.dense_iterations; ++iteration) {
+      ++fit.iterations;
+      Eigen::Matrix<double, 8, 1> g_geo = Eigen::Matrix<double, 8, 1>::Zero();
+      double g_t = 0, g_1 = 0, sse = 0;
+      int used = 0;
+      const double h00 = h(0, 0), h01 = h(0, 1), h02 = h(0, 2), h10 = h(1, 0), h11 = h(1, 1),
+                   h12 = h(1, 2), h20 = h(2, 0), h21 = h(2, 1), h22 = h(2, 2);
+      const double inv_unit = 1.0 / unit;
+      float g[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+      for (int s = 0; s < samples; ++s) {
+        const float* r = &dense_rows_[static_cast<size_t>(s) * kStride];
+        const double w = 1.0 / (h20 * r[0] + h21 * r[1] + h22);
+        const double qx = ((h00 * r[0] + h01 * r[1] + h02) * w - base_roi.x) * inv_unit;
+        const double qy = ((h10 * r[0] + h11 * r[1] + h12) * w - base_roi.y) * inv_unit;
+        if (!(qx >= 1 && qy >= 1 && qx < b.cols - 3 && qy < b.rows - 3)) continue;
+        const float e = SampleCubic(b, qx, qy) - static_cast<float>(gain * r[2] + offset);
+        for (int k = 0; k < 8; ++k) g[k] += r[3 + k] * e;
+        g_t += r[2] * e;
+        g_1 += e;
+        sse += static_cast<double>(e) * e;
+        ++used;
+      }
+      if (used < samples * 0.9) return fit;  // The homography moved the overlap away.
+      for (int k = 0; k < 8; ++k) g_geo(k) = g[k];
+      const double variance = std::max(sse / used, 1e-6);
+      fit.residual_rms = std::sqrt(sse / used);
+      Eigen::Matrix<double, 10, 1> scale;
+      scale << gain, gain, gain, gain, gain, gain, gain, gain, 1, 1;
+      normal = scale.asDiagonal() * h0 * scale.asDiagonal() / variance;
+      Vector10 rhs;
+      rhs << gain * g_geo, g_t, g_1;
+      rhs /= variance;
+      // Prior on the total distortion; an increment d changes it by about -d (inverse
+      // composition near the identity).
+      Eigen::Matrix3d hn = h * to_templ;
+      const Eigen::Vector2d moved = (h * centre.homogeneous()).hnormalized();
+      Eigen::Matrix3d from_base = Eigen::Matrix3d::Identity();
+      from_base.topLeftCorner<2, 2>() /= kScale;
+      from_base.topRightCorner<2, 1>() = -moved / kScale;
+      hn = from_base * hn;
+      hn /= hn(2, 2);
+      const double total[8] = {hn(0, 0) - 1, hn(0, 1), hn(0, 2), hn(1, 0),
+                               hn(1, 1) - 1, hn(1, 2), hn(2, 0), hn(2, 1)};
+      for (int k = 0; k < 8; ++k) {
+        if (prior_sigma[k] <= 0) continue;
+        const double p = 1.0 / (prior_sigma[k] * prior_sigma[k]);
+        normal(k, k) += p;
+        rhs(k) += p * total[k];
+      }
+      const Vector10 delta = normal.ldlt().solve(rhs);
+      if (!delta.allFinite()) return fit;
+      Eigen::Matrix3d w;
+      w << 1 + delta(0), delta(1), delta(2), delta(3), 1 + delta(4), delta(5), delta(6), delta(7),
+          1;
+      Eigen::Matrix3d next = h * to_templ * w.inverse() * from_templ;
+      next /= next(2, 2);
+      gain += delta(8);
+      offset += delta(9);
+      double motion = 0.0;
+      for (const Eigen::Vector2d& c : corners) {
+        motion = std::max(
+            motion,
+            ((next * c.homogeneous()).hnormalized() - (h * c.homogeneous()).hnormalized()).norm());
+      }
+      if (!next.allFinite() || motion > 20.0 || !(gain > 0.2 && gain < 5.0)) return fit;
+      h = next;
+      if (motion < options_.dense_convergence_px) break;
+    }
+  }
+  // Predicted std at the overlap corners from the covariance of the last linearisation.
+  const Eigen::Matrix<double, 8, 8> covariance = normal.inverse().topLeftCorner<8, 8>();
+  double variance = 0.0;
+  for (const Eigen::Vector2d& c : corners) {
+    const double u = (c.x() - centre.x()) / kScale, v = (c.y() - centre.y()) / kScale;
+    Eigen::Matrix<double, 2, 8> j;
+    j << u, v, 1, 0, 0, 0, -u * u, -u * v, 0, 0, 0, u, v, 1, -u * v, -v * v;
+    j *= kScale;
+    variance += (j * covariance * j.transpose()).trace();
+  }
+  fit.sigma_px = std::sqrt(variance / 4.0) * PyramidNoiseFactor(bottom);
+  fit.ok = true;
+  *homography = h;
   return fit;
 }
 

@@ -70,6 +70,22 @@ struct FineRegistrationOptions {
   // Joint-fit accept criterion: predicted std of the homography at the corners of the key
   // points' box (px).
   double max_joint_sigma_px = 0.25;
+  // Final direct refinement over the whole overlap (ours): Gauss-Newton on the image difference
+  // at every pixel of a Gaussian pyramid level of the overlap (8 homography parameters, gain
+  // and offset, the distortion prior above), coarse level first. The key-point patches carry a
+  // few hundred filter responses; the overlap holds tens of thousands of pixels, which is what
+  // noise at PSNR 20 dB needs (docs/matching.md). Starts from the tie-point (or joint) result.
+  bool dense_refinement = true;
+  int dense_coarsest_level = 2;  // First stage at 1/2^level of the resolution.
+  int dense_finest_level = 1;    // Last stage (0: full resolution).
+  int dense_iterations = 10;     // At most, per level.
+  // Gaussian smoothing (pixels of the level) of the template before its gradients are taken.
+  double dense_gradient_sigma = 1.0;
+  // Converged when an update moves every overlap corner by less than this (px).
+  double dense_convergence_px = 0.01;
+  // Accept criterion of the dense fit: predicted std of the homography at the overlap
+  // corners (px). 1/3: the 3-sigma corner error stays under the 1 px a mosaic seam needs.
+  double max_dense_sigma_px = 1.0 / 3.0;
   // Accept criteria: a pair is kRejected unless all hold.
   int min_inliers = 10;
   double min_inlier_ratio = 0.5;
@@ -109,6 +125,12 @@ struct PairRegistration {
   int joint_inlier_patches = 0;
   double joint_sigma_px = 0.0;
   double joint_residual_ratio = 0.0;
+  // Dense fit (when enabled): overlap pixels used at the finest level, predicted homography std
+  // at the overlap corners (px), RMS of the final image residual (gray levels), iterations.
+  int dense_pixels = 0;
+  double dense_sigma_px = 0.0;
+  double dense_residual_rms = 0.0;
+  int dense_iterations = 0;
 #ifdef IRMOSAIC_HAS_SCD
   ScdResult coarse;  // Filled by PairRegistrar.
 #endif
@@ -139,12 +161,22 @@ class IRMOSAIC_EXPORT FineRegistrar {
     double sigma_px = 1e9, residual_ratio = 1e9;
   };
   JointFit JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
+  struct DenseFit {
+    bool ok = false;
+    int pixels = 0, iterations = 0;
+    double sigma_px = 1e9, residual_rms = 0.0;
+  };
+  DenseFit DenseRefine(const cv::Mat& base_mask, const cv::Mat& templ_mask,
+                       Eigen::Matrix3d* homography);
   bool FitRansac(PairRegistration* out) const;
   void MarkInliers(PairRegistration* out, double* sum_sq) const;
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
   cv::Mat base_f_, templ_f_, valid_, shifted_;
+  std::vector<cv::Mat> templ_levels_, base_levels_;  // Dense fit pyramids (scratch).
+  cv::Mat smoothed_;
+  std::vector<float> dense_rows_;  // Dense fit samples (scratch).
 };
 
 #ifdef IRMOSAIC_HAS_SCD
