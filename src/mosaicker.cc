@@ -124,6 +124,10 @@ class Mosaicker::Impl : public MosaicSink {
     // The optimizer weighs each pair by its accuracy, so a pair known to 1 px is still worth
     // far more than POS (metres); the registration's own stricter default is for single pairs.
     registration.fine.max_joint_sigma_px = 1.0;
+    // The dense overlap fit is off in the pipeline: on the bundled sample it raised the mean
+    // placement error from 2.02 to 3.08 px (scripts/run-sample.sh), through its known bias on
+    // unblurred noisy pairs (docs/matching.md, "Dense refinement").
+    registration.fine.dense_refinement = false;
     registrar_ = std::make_unique<PairRegistrar>(registration);
     fusion_ = std::make_unique<MapFusion>(
         options_.fusion, camera_,
