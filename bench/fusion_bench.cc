@@ -18,16 +18,17 @@ using namespace irmosaic;
 using Clock = std::chrono::steady_clock;
 
 struct Result {
-  std::vector<double> rmse, seam, latency_ms;
+  std::vector<double> rmse, seam, latency_ms, relative;
+  std::vector<Eigen::Vector2d> centre_error;  // Placement minus truth at the image centre.
   FusionStats stats;
 };
 
-Result Run(const testing::Sweep& s, bool optimize, double rate_fps) {
-  FusionOptions options;
+double g_tie_noise_px = 0.15;
+
+Result Run(const testing::Sweep& s, FusionOptions options, bool optimize, double rate_fps) {
   options.optimize = optimize;
   options.render = false;
-  options.solve_every_frames = 25;
-  MapFusion fusion(options, s.camera, testing::IdealRegistrar(s, 0.15, 11), nullptr);
+  MapFusion fusion(options, s.camera, testing::IdealRegistrar(s, g_tie_noise_px, 11), nullptr);
   const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
   Result r;
   const auto start = Clock::now();
@@ -48,10 +49,14 @@ Result Run(const testing::Sweep& s, bool optimize, double rate_fps) {
   const auto placements = fusion.Placements();
   for (const FramePlacement& p : placements) {
     r.rmse.push_back(testing::PlacementRmse(p.mosaic_from_image, s.truth[p.index], s.camera));
+    const Eigen::Vector2d c((s.camera.width - 1) / 2.0, (s.camera.height - 1) / 2.0);
+    r.centre_error.push_back(ApplyHomography(p.mosaic_from_image, c) -
+                             ApplyHomography(s.truth[p.index], c));
   }
   for (size_t j = 1; j < placements.size(); ++j) {
     r.seam.push_back(testing::SeamRmse(placements, s, static_cast<int64_t>(j) - 1, j));
   }
+  r.relative = testing::RelativeRmse(placements, s);
   r.stats = fusion.stats();
   return r;
 }
@@ -70,18 +75,49 @@ int main(int argc, char** argv) {
   int frames = 2000;
   double rate = 100.0;
   std::string json_path, plot_path;
+  uint32_t seed = 7;
+  bool skip_without = false;
+  FusionOptions options;
+  options.solve_every_frames = 25;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string a = argv[i];
     if (a == "--frames") frames = std::stoi(argv[i + 1]);
     if (a == "--rate") rate = std::stod(argv[i + 1]);
     if (a == "--json") json_path = argv[i + 1];
     if (a == "--plot") plot_path = argv[i + 1];
+    if (a == "--tie-sigma") options.tie_sigma_px = std::stod(argv[i + 1]);
+    if (a == "--neighbours") options.max_neighbours = std::stoi(argv[i + 1]);
+    if (a == "--tie-noise") g_tie_noise_px = std::stod(argv[i + 1]);
+    if (a == "--seed") seed = static_cast<uint32_t>(std::stoul(argv[i + 1]));
+    if (a == "--window") options.window_frames = std::stoi(argv[i + 1]);
+    if (a == "--solve-every") options.solve_every_frames = std::stoi(argv[i + 1]);
+    if (a == "--max-ties") options.max_ties_per_pair = std::stoi(argv[i + 1]);
+    if (a == "--skip-without") skip_without = std::stoi(argv[i + 1]) != 0;
   }
-  const testing::Sweep s = testing::MakeSweep(frames, 6, 2.0, 0.3, 7);
+  const testing::Sweep s = testing::MakeSweep(frames, 6, 2.0, 0.3, seed);
   std::vector<double> pos_rmse;
   for (int i = 0; i < frames; ++i)
     pos_rmse.push_back(testing::PlacementRmse(s.pos[i], s.truth[i], s.camera));
-  const Result with = Run(s, true, rate), without = Run(s, false, rate);
+  {
+    // Is the POS prior consistent with the POS errors? Whitened chi^2 of the truth's corners
+    // and centre against the POS placement (expected about 6: six pose errors).
+    double chi2 = 0.0;
+    for (int i = 0; i < frames; ++i) {
+      const std::array<Eigen::Vector2d, 5> pts = {
+          Eigen::Vector2d(0, 0), Eigen::Vector2d(s.camera.width - 1, 0),
+          Eigen::Vector2d(s.camera.width - 1, s.camera.height - 1),
+          Eigen::Vector2d(0, s.camera.height - 1),
+          Eigen::Vector2d((s.camera.width - 1) / 2.0, (s.camera.height - 1) / 2.0)};
+      Eigen::Matrix<double, 10, 1> e;
+      for (int k = 0; k < 5; ++k)
+        e.segment<2>(2 * k) =
+            ApplyHomography(s.truth[i], pts[k]) - ApplyHomography(s.pos[i], pts[k]);
+      chi2 += (s.prior[i] * e).squaredNorm();
+    }
+    std::printf("POS prior: mean whitened chi^2 of the truth %.2f (10 points)\n", chi2 / frames);
+  }
+  const Result with = Run(s, options, true, rate);
+  const Result without = skip_without ? with : Run(s, options, false, rate);
   std::printf("%-22s %10s %10s %10s %10s %10s %12s\n", "run", "mean_px", "p95_px", "max_px",
               "seam_px", "lat_p50ms", "lat_p99ms");
   auto row = [&](const char* name, const Result& r) {
@@ -98,6 +134,28 @@ int main(int argc, char** argv) {
       static_cast<long long>(with.stats.solves),
       with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0,
       with.stats.max_solve_ms, static_cast<long long>(with.stats.optimizer_lag_frames));
+  // Where the error lives: the mean centre error of blocks of 120 frames (20 sweeps) is the
+  // low-frequency part (gauge, drift); what is left after removing it is local.
+  {
+    double low = 0.0, local = 0.0;
+    int n = 0;
+    for (size_t b = 0; b + 120 <= with.centre_error.size(); b += 120) {
+      Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+      for (size_t i = b; i < b + 120; ++i) mean += with.centre_error[i] / 120.0;
+      std::printf("block %4zu: mean centre error (%6.3f, %6.3f) px\n", b, mean.x(), mean.y());
+      for (size_t i = b; i < b + 120; ++i) {
+        low += mean.squaredNorm();
+        local += (with.centre_error[i] - mean).squaredNorm();
+        ++n;
+      }
+    }
+    std::printf("relative (global similarity removed): mean %.3f max %.3f px\n",
+                Mean(with.relative), Percentile(with.relative, 1.0));
+    if (n > 0) {
+      std::printf("centre error RMS: low-frequency (120-frame blocks) %.3f px, local %.3f px\n",
+                  std::sqrt(low / n), std::sqrt(local / n));
+    }
+  }
   if (!plot_path.empty()) {
     std::vector<PlacementScore> scores(3);
     const std::vector<const std::vector<double>*> series = {&with.rmse, &without.rmse, &pos_rmse};

@@ -149,6 +149,7 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(pos_sigma_px > 0.0)) return fail("pos_sigma_px must be positive");
   if (!(tie_sigma_px > 0.0)) return fail("tie_sigma_px must be positive");
   if (!(robust_scale > 0.0)) return fail("robust_scale must be positive");
+  if (!(pair_robust_scale_px > 0.0)) return fail("pair_robust_scale_px must be positive");
   if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
@@ -349,6 +350,9 @@ class MapFusion::Impl {
     std::vector<Eigen::Vector2d> base_points, template_points;
     std::vector<double> base_values, template_values;
     double tie_sigma_px = 0.0;
+    // Pair-level weight from its consistency with the rest of the network, carried from one
+    // solve to the next. Written by the solver only (one at a time), read by it.
+    std::shared_ptr<double> weight = std::make_shared<double>(1.0);
   };
 
   // Keeps at most max_ties_per_pair tie points, evenly spread over the list (the registrar
@@ -469,21 +473,30 @@ class MapFusion::Impl {
     std::map<size_t, std::array<double, 8>> delta;
     for (const auto& [slot, placement] : current) delta[slot].fill(0.0);
 
-    // Two stages: plain least squares from the real-time placements (which may be many
-    // sigmas off, where a robust loss would call every tie an outlier), then Cauchy to
-    // down-weight the ties of bad pairs. One wrapper lets the loss change between stages.
+    // Stages: least squares from the real-time placements (which may be many sigmas off, where
+    // a robust loss would call every tie an outlier), then Cauchy per tie against single bad
+    // ties. A whole pair that is wrong by a few pixels is invisible to a per-tie loss: in a
+    // loop of four pairs, least squares leaves only a quarter of its error in its own
+    // residuals, about one sigma per tie. Its mean residual, though, is many standard errors
+    // off, so each pair also gets a weight 1 / (1 + (|mean residual| / pair_robust_scale_px)^2),
+    // recomputed after each stage (iteratively reweighted) and kept for the next solve.
     ceres::Problem::Options problem_options;
     problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
     ceres::Problem problem(problem_options);
-    ceres::LossFunctionWrapper tie_loss(nullptr, ceres::TAKE_OWNERSHIP);
+    std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> pair_loss;
+    std::vector<double> pair_weight;
     for (const Pair& p : pairs) {
       const size_t a = p.base->slot, b = p.templ->slot;
       const double inv_tie = 1.0 / std::max(options_.tie_sigma_px, p.tie_sigma_px);
+      pair_weight.push_back(*p.weight);
+      pair_loss.push_back(std::make_unique<ceres::LossFunctionWrapper>(
+          new ceres::ScaledLoss(nullptr, pair_weight.back(), ceres::TAKE_OWNERSHIP),
+          ceres::TAKE_OWNERSHIP));
       for (size_t t = 0; t < p.base_points.size(); ++t) {
         problem.AddResidualBlock(new ceres::AutoDiffCostFunction<TieCost, 2, 8, 8>(new TieCost(
                                      current[a].mosaic_from_image, current[b].mosaic_from_image,
                                      normalizer_, p.base_points[t], p.template_points[t], inv_tie)),
-                                 &tie_loss, delta[a].data(), delta[b].data());
+                                 pair_loss.back().get(), delta[a].data(), delta[b].data());
       }
     }
     const std::array<Eigen::Vector2d, 5> points = {
@@ -517,10 +530,38 @@ class MapFusion::Impl {
     solver.gradient_tolerance = 1e-16;
     solver.parameter_tolerance = 1e-12;
     ceres::Solver::Summary summary;
-    ceres::Solve(solver, &problem, &summary);
-    tie_loss.Reset(new ceres::CauchyLoss(options_.robust_scale), ceres::TAKE_OWNERSHIP);
-    ceres::Solve(solver, &problem, &summary);
-
+    // Pair weights from the mean tie residual of each pair at the current solution.
+    auto reweight_pairs = [&] {
+      for (size_t k = 0; k < pairs.size(); ++k) {
+        const Pair& p = pairs[k];
+        const size_t a = p.base->slot, b = p.templ->slot;
+        const Eigen::Matrix3d ha =
+            ApplyDelta(current[a].mosaic_from_image, normalizer_, delta[a].data());
+        const Eigen::Matrix3d hb =
+            ApplyDelta(current[b].mosaic_from_image, normalizer_, delta[b].data());
+        Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+        for (size_t t = 0; t < p.base_points.size(); ++t) {
+          mean += ApplyHomography(ha, p.base_points[t]) - ApplyHomography(hb, p.template_points[t]);
+        }
+        mean /= static_cast<double>(std::max<size_t>(1, p.base_points.size()));
+        const double ratio = mean.norm() / options_.pair_robust_scale_px;
+        pair_weight[k] = 1.0 / (1.0 + ratio * ratio);
+      }
+    };
+    const int stages = final_solve ? 4 : 2;
+    for (int stage = 0; stage < stages; ++stage) {
+      if (stage > 0) {
+        reweight_pairs();
+        for (size_t k = 0; k < pairs.size(); ++k) {
+          pair_loss[k]->Reset(new ceres::ScaledLoss(new ceres::CauchyLoss(options_.robust_scale),
+                                                    pair_weight[k], ceres::TAKE_OWNERSHIP),
+                              ceres::TAKE_OWNERSHIP);
+        }
+      }
+      ceres::Solve(solver, &problem, &summary);
+    }
+    reweight_pairs();
+    for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
     // Residuals per frame after the solve.
     std::map<size_t, std::pair<double, int>> residual;  // slot -> (sum sq, count)
     std::map<size_t, Eigen::Matrix3d> solved;

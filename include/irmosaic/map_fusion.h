@@ -82,6 +82,8 @@ struct FusionOptions {
                                         // bring no prior_sqrt_information.
   double tie_sigma_px = 0.3;            // Tie point accuracy (1 sigma, px).
   double robust_scale = 3.0;            // Cauchy loss scale, in sigmas of the tie residual.
+  double pair_robust_scale_px = 0.5;    // A pair whose mean tie residual is this far off gets
+                                        // half weight (a whole pair wrong by a few px).
   double rerender_threshold_px = 0.25;  // Re-render a frame that moved more than this.
   bool optimize = true;                 // Run the global optimization thread.
   bool compensate_gain = true;          // Per-frame gain and offset from the overlaps.
