@@ -2,7 +2,12 @@
 // without the global optimization, mapping latency per frame while the optimizer runs, and the
 // optimizer's time per window. Registration is the ideal registrar of tests/fusion_sweep.h
 // (true tie points + Gaussian noise), so the figures isolate the fusion.
-// Usage: fusion_bench [--frames N] [--rate FPS] [--json FILE] [--plot FILE.png]
+// Usage: fusion_bench [--frames N] [--rate FPS] [--json FILE] [--plot FILE.png] [--render 0|1]
+//   [--precision 0|1] [--solver NAME] [--sparse NAME] [--window N] [--solve-every N]
+//   [--max-ties N] [--neighbours N] [--tie-noise PX] [--tie-sigma PX] [--seed N]
+//   [--skip-without 0|1]
+// Latency is per Push(): wall time and the calling thread's CPU time (less inflated by a
+// loaded machine).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -18,18 +23,34 @@ using namespace irmosaic;
 using Clock = std::chrono::steady_clock;
 
 struct Result {
-  std::vector<double> rmse, seam, latency_ms, relative;
+  std::vector<double> rmse, seam, latency_ms, latency_cpu_ms, relative, lag_frames;
   std::vector<Eigen::Vector2d> centre_error;  // Placement minus truth at the image centre.
   FusionStats stats;
 };
 
 double g_tie_noise_px = 0.15;
 
+// Discards what it is given: the latency then includes orthorectification, gain and
+// feathering, but not a store.
+class NullSink : public MosaicSink {
+ public:
+  void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+  void FramePlaced(const FramePlacement&) override {}
+};
+
+double ThreadCpuMs() {
+  timespec ts;
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
+}
+
 Result Run(const testing::Sweep& s, FusionOptions options, bool optimize, double rate_fps) {
   options.optimize = optimize;
-  options.render = false;
-  MapFusion fusion(options, s.camera, testing::IdealRegistrar(s, g_tie_noise_px, 11), nullptr);
-  const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+  NullSink sink;
+  MapFusion fusion(options, s.camera, testing::IdealRegistrar(s, g_tie_noise_px, 11),
+                   options.render ? &sink : nullptr);
+  cv::Mat image(s.camera.height, s.camera.width, CV_16U);
+  cv::randu(image, 1000, 3000);
   Result r;
   const auto start = Clock::now();
   for (size_t i = 0; i < s.pos.size(); ++i) {
@@ -40,8 +61,11 @@ Result Run(const testing::Sweep& s, FusionOptions options, bool optimize, double
     f.pos_mosaic_from_image = s.pos[i];
     f.prior_sqrt_information = s.prior[i];
     const auto t0 = Clock::now();
+    const double cpu0 = ThreadCpuMs();
     fusion.Push(std::move(f));
+    r.latency_cpu_ms.push_back(ThreadCpuMs() - cpu0);
     r.latency_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+    r.lag_frames.push_back(static_cast<double>(fusion.stats().optimizer_lag_frames));
     std::this_thread::sleep_until(
         start + std::chrono::microseconds(static_cast<int64_t>(1e6 * (i + 1) / rate_fps)));
   }
@@ -79,12 +103,17 @@ int main(int argc, char** argv) {
   bool skip_without = false;
   FusionOptions options;
   options.solve_every_frames = 25;
+  options.render = false;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string a = argv[i];
     if (a == "--frames") frames = std::stoi(argv[i + 1]);
     if (a == "--rate") rate = std::stod(argv[i + 1]);
     if (a == "--json") json_path = argv[i + 1];
     if (a == "--plot") plot_path = argv[i + 1];
+    if (a == "--render") options.render = std::stoi(argv[i + 1]) != 0;
+    if (a == "--precision") options.estimate_precision = std::stoi(argv[i + 1]) != 0;
+    if (a == "--solver") options.linear_solver = argv[i + 1];
+    if (a == "--sparse") options.sparse_library = argv[i + 1];
     if (a == "--tie-sigma") options.tie_sigma_px = std::stod(argv[i + 1]);
     if (a == "--neighbours") options.max_neighbours = std::stoi(argv[i + 1]);
     if (a == "--tie-noise") g_tie_noise_px = std::stod(argv[i + 1]);
@@ -118,12 +147,13 @@ int main(int argc, char** argv) {
   }
   const Result with = Run(s, options, true, rate);
   const Result without = skip_without ? with : Run(s, options, false, rate);
-  std::printf("%-22s %10s %10s %10s %10s %10s %12s\n", "run", "mean_px", "p95_px", "max_px",
-              "seam_px", "lat_p50ms", "lat_p99ms");
+  std::printf("%-22s %9s %9s %9s %9s %10s %10s %10s %10s\n", "run", "mean_px", "p95_px", "max_px",
+              "seam_px", "lat_p50ms", "lat_p99ms", "cpu_p50ms", "cpu_p99ms");
   auto row = [&](const char* name, const Result& r) {
-    std::printf("%-22s %10.3f %10.3f %10.3f %10.3f %10.3f %12.3f\n", name, Mean(r.rmse),
+    std::printf("%-22s %9.3f %9.3f %9.3f %9.3f %10.3f %10.3f %10.3f %10.3f\n", name, Mean(r.rmse),
                 Percentile(r.rmse, 0.95), Percentile(r.rmse, 1.0), Mean(r.seam),
-                Percentile(r.latency_ms, 0.5), Percentile(r.latency_ms, 0.99));
+                Percentile(r.latency_ms, 0.5), Percentile(r.latency_ms, 0.99),
+                Percentile(r.latency_cpu_ms, 0.5), Percentile(r.latency_cpu_ms, 0.99));
   };
   std::printf("%-22s %10.3f %10.3f %10.3f\n", "POS only", Mean(pos_rmse),
               Percentile(pos_rmse, 0.95), Percentile(pos_rmse, 1.0));
@@ -134,6 +164,16 @@ int main(int argc, char** argv) {
       static_cast<long long>(with.stats.solves),
       with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0,
       with.stats.max_solve_ms, static_cast<long long>(with.stats.optimizer_lag_frames));
+  std::printf("optimizer CPU time per window: mean %.0f ms, max %.0f ms\n",
+              with.stats.solves ? with.stats.total_solve_cpu_ms / with.stats.solves : 0.0,
+              with.stats.max_solve_cpu_ms);
+  std::printf("optimizer lag behind the foreground: p50 %.0f, p99 %.0f, max %.0f frames\n",
+              Percentile(with.lag_frames, 0.5), Percentile(with.lag_frames, 0.99),
+              Percentile(with.lag_frames, 1.0));
+  if (with.stats.predicted_rmse_px > 0.0) {
+    std::printf("predicted RMS placement error of the final solve (covariance): %.3f px\n",
+                with.stats.predicted_rmse_px);
+  }
   // Where the error lives: the mean centre error of blocks of 120 frames (20 sweeps) is the
   // low-frequency part (gauge, drift); what is left after removing it is local.
   {
@@ -179,6 +219,9 @@ int main(int argc, char** argv) {
         {"benchmark", "fusion"},
         {"frames", frames},
         {"rate_fps", rate},
+        {"render", options.render},
+        {"linear_solver", options.linear_solver},
+        {"sparse_library", options.sparse_library},
         {"pos_only", {{"mean_px", Mean(pos_rmse)}, {"max_px", Percentile(pos_rmse, 1.0)}}},
         {"with_optimization",
          {{"mean_px", Mean(with.rmse)},
@@ -187,6 +230,16 @@ int main(int argc, char** argv) {
           {"seam_mean_px", Mean(with.seam)},
           {"latency_p50_ms", Percentile(with.latency_ms, 0.5)},
           {"latency_p99_ms", Percentile(with.latency_ms, 0.99)},
+          {"latency_cpu_p50_ms", Percentile(with.latency_cpu_ms, 0.5)},
+          {"latency_cpu_p99_ms", Percentile(with.latency_cpu_ms, 0.99)},
+          {"lag_p50_frames", Percentile(with.lag_frames, 0.5)},
+          {"lag_max_frames", Percentile(with.lag_frames, 1.0)},
+          {"predicted_rmse_px", with.stats.predicted_rmse_px},
+          {"mean_solve_ms",
+           with.stats.solves ? with.stats.total_solve_ms / with.stats.solves : 0.0},
+          {"mean_solve_cpu_ms",
+           with.stats.solves ? with.stats.total_solve_cpu_ms / with.stats.solves : 0.0},
+          {"max_solve_cpu_ms", with.stats.max_solve_cpu_ms},
           {"solves", with.stats.solves},
           {"max_solve_ms", with.stats.max_solve_ms},
           {"rmse_px", with.rmse}}},

@@ -1,6 +1,7 @@
 #include "irmosaic/map_fusion.h"
 
 #include <ceres/ceres.h>
+#include <time.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -19,6 +20,13 @@ namespace irmosaic {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+
+// CPU time of the calling thread, ms.
+double ThreadCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
 
 // Image-point normalization for the homography update: n = (p - c) / s.
 struct Normalizer {
@@ -153,6 +161,20 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
+  ceres::LinearSolverType solver_type;
+  if (!ceres::StringToLinearSolverType(linear_solver, &solver_type) ||
+      solver_type == ceres::DENSE_SCHUR || solver_type == ceres::SPARSE_SCHUR ||
+      solver_type == ceres::ITERATIVE_SCHUR) {
+    return fail(
+        "linear_solver must be a Ceres linear solver without Schur elimination "
+        "(e.g. SPARSE_NORMAL_CHOLESKY, DENSE_QR, CGNR), not '" +
+        linear_solver + "'");
+  }
+  ceres::SparseLinearAlgebraLibraryType library;
+  if (!ceres::StringToSparseLinearAlgebraLibraryType(sparse_library, &library)) {
+    return fail("sparse_library must be SUITE_SPARSE, CX_SPARSE or EIGEN_SPARSE, not '" +
+                sparse_library + "'");
+  }
   return true;
 }
 
@@ -439,6 +461,7 @@ class MapFusion::Impl {
   // re-renders what moved.
   void SolveWindow(bool final_solve) {
     const auto start = Clock::now();
+    const double start_cpu_ms = ThreadCpuMs();
     std::vector<std::shared_ptr<Held>> frames;
     std::vector<Pair> pairs;
     std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
@@ -520,7 +543,9 @@ class MapFusion::Impl {
           nullptr, d.data());
     }
     ceres::Solver::Options solver;
-    solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+    ceres::StringToLinearSolverType(options_.linear_solver, &solver.linear_solver_type);
+    ceres::StringToSparseLinearAlgebraLibraryType(options_.sparse_library,
+                                                  &solver.sparse_linear_algebra_library_type);
     solver.max_num_iterations = final_solve ? 20 : 6;
     solver.num_threads = 1;
     solver.logging_type = ceres::SILENT;
@@ -562,6 +587,9 @@ class MapFusion::Impl {
     }
     reweight_pairs();
     for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
+    const double predicted_rmse_px = final_solve && options_.estimate_precision
+                                         ? PredictedRmse(&problem, delta, current, first_slot)
+                                         : 0.0;
     // Residuals per frame after the solve.
     std::map<size_t, std::pair<double, int>> residual;  // slot -> (sum sq, count)
     std::map<size_t, Eigen::Matrix3d> solved;
@@ -613,12 +641,56 @@ class MapFusion::Impl {
       stats_.last_solve_ms = ms;
       stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
       stats_.total_solve_ms += ms;
+      const double cpu_ms = ThreadCpuMs() - start_cpu_ms;
+      stats_.max_solve_cpu_ms = std::max(stats_.max_solve_cpu_ms, cpu_ms);
+      stats_.total_solve_cpu_ms += cpu_ms;
       stats_.rerendered_frames += static_cast<int64_t>(moved.size());
+      if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
     }
     for (const auto& [frame, placement] : moved) {
       Render(*frame, placement, final_solve ? &foreground_ortho_ : &background_ortho_);
       if (sink_) sink_->FramePlaced(placement);
     }
+  }
+
+  // Root mean of the expected squared placement error of the frames from `first_slot` on, from
+  // the covariance of the solved problem (Ceres; inverse of J^T J at the solution): a 5x5 grid
+  // of each frame's pixels, mapped through the Jacobian of its placement.
+  double PredictedRmse(ceres::Problem* problem, std::map<size_t, std::array<double, 8>>& delta,
+                       std::map<size_t, FramePlacement>& current, size_t first_slot) const {
+    ceres::Covariance covariance{ceres::Covariance::Options()};
+    std::vector<std::pair<const double*, const double*>> blocks;
+    for (auto& [slot, d] : delta) {
+      if (slot >= first_slot) blocks.emplace_back(d.data(), d.data());
+    }
+    if (blocks.empty() || !covariance.Compute(blocks, problem)) return 0.0;
+    double sum = 0.0;
+    int frames = 0;
+    for (auto& [slot, d] : delta) {
+      if (slot < first_slot) continue;
+      Eigen::Matrix<double, 8, 8, Eigen::RowMajor> c;
+      covariance.GetCovarianceBlock(d.data(), d.data(), c.data());
+      double trace = 0.0;
+      for (int j = 0; j < 5; ++j) {
+        for (int i = 0; i < 5; ++i) {
+          const Eigen::Vector2d p((camera_.width - 1) * i / 4.0, (camera_.height - 1) * j / 4.0);
+          Eigen::Matrix<double, 2, 8> jacobian;
+          for (int k = 0; k < 8; ++k) {
+            std::array<double, 8> plus = d, minus = d;
+            plus[k] += 1e-6;
+            minus[k] -= 1e-6;
+            const Eigen::Matrix3d& h = current[slot].mosaic_from_image;
+            jacobian.col(k) = (ApplyHomography(ApplyDelta(h, normalizer_, plus.data()), p) -
+                               ApplyHomography(ApplyDelta(h, normalizer_, minus.data()), p)) /
+                              2e-6;
+          }
+          trace += (jacobian * c * jacobian.transpose()).trace();
+        }
+      }
+      sum += trace / 25.0;
+      ++frames;
+    }
+    return std::sqrt(sum / frames);
   }
 
   // Gains and offsets of the window's frames from the radiometric ties (linear least squares,

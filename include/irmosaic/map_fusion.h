@@ -91,6 +91,13 @@ struct FusionOptions {
   int feather_px = 24;                  // Seam blending ramp width.
   int tie_patch_radius_px = 3;          // Radiometric samples: mean of a (2r+1)^2 patch.
   bool render = true;                   // Paint into the sink (off for geometry-only runs).
+  // Ceres linear solver and sparse library by their Ceres names (docs/fusion.md has the
+  // measured choice).
+  std::string linear_solver = "SPARSE_NORMAL_CHOLESKY";
+  std::string sparse_library = "SUITE_SPARSE";
+  // At Finish(), the covariance of the last solve (Ceres) gives the expected placement RMSE
+  // of its frames under the tie and POS error models: FusionStats::predicted_rmse_px.
+  bool estimate_precision = false;
 
   // Returns false and a message when an option is out of range.
   bool IsValid(std::string* error) const;
@@ -108,7 +115,12 @@ struct FusionStats {
   double last_solve_ms = 0.0;
   double max_solve_ms = 0.0;
   double total_solve_ms = 0.0;
+  double max_solve_cpu_ms = 0.0;     // The solving thread's CPU time (a loaded machine inflates
+  double total_solve_cpu_ms = 0.0;   // wall time, not this).
   int64_t optimizer_lag_frames = 0;  // Frames pushed but not yet in a finished solve.
+  // Root mean of the predicted squared placement error (5x5 grid of each frame, mosaic px)
+  // over the frames of the final solve; 0 unless FusionOptions::estimate_precision.
+  double predicted_rmse_px = 0.0;
 };
 
 // Map fusion (paper section 5): a real-time mapping step in the caller's thread and a global
