@@ -324,8 +324,18 @@ class MapFusion::Impl {
         ++frames_registered_;
       }
       // Frames leaving the window are frozen; pairs with no frame in the window are dropped.
+      // While the optimizer runs behind (a loaded machine), frames it has not refined yet are
+      // held up to kMaxHeldWindows windows, so they are refined late rather than frozen with
+      // their chained placement; past that they are frozen, with a note.
       const size_t keep = 2 * static_cast<size_t>(options_.window_frames);
-      while (window_.size() > keep) window_.pop_front();
+      const size_t hard = kMaxHeldWindows * static_cast<size_t>(options_.window_frames);
+      while (window_.size() > keep) {
+        FramePlacement& oldest_placement = placements_[window_.front()->slot];
+        const bool unrefined = options_.optimize && oldest_placement.optimized_times == 0;
+        if (unrefined && window_.size() <= hard) break;
+        if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
+        window_.pop_front();
+      }
       const int64_t oldest = window_.front()->data.index;
       while (!pairs_.empty() && pairs_.front().base->data.index < oldest &&
              pairs_.front().templ->data.index < oldest) {
@@ -469,13 +479,14 @@ class MapFusion::Impl {
     {
       std::lock_guard<std::mutex> lock(mu_);
       if (window_.size() < 2) return;
-      // The last window_frames frames, extended back (up to twice that) to frames no solve
-      // has refined yet, so a foreground running ahead never freezes unrefined frames.
+      // The last window_frames frames, extended back (up to kMaxHeldWindows times that) to frames
+      // no solve has refined yet, so a foreground running ahead never freezes unrefined frames.
       size_t first = window_.size() > static_cast<size_t>(options_.window_frames)
                          ? window_.size() - options_.window_frames
                          : 0;
       while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
-             window_.size() - first < 2 * static_cast<size_t>(options_.window_frames)) {
+             window_.size() - first <
+                 kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
         --first;
       }
       frames.assign(window_.begin() + static_cast<std::ptrdiff_t>(first), window_.end());
@@ -759,6 +770,8 @@ class MapFusion::Impl {
     }
     return result;
   }
+
+  static constexpr size_t kMaxHeldWindows = 4;
 
   FusionOptions options_;
   CameraModel camera_;

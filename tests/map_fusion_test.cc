@@ -77,7 +77,7 @@ double Max(const std::vector<double>& v) { return *std::max_element(v.begin(), v
 // it), ties with 0.15 px noise. The issue asks mean <= 0.5 px and max <= 1.5 px against the
 // truth; that is below what the data allow: the Cramer-Rao bound of this network (Ceres
 // covariance of a batch solve over all frames, docs/fusion.md) is 1.2 px RMS (about 1.05 px
-// expected mean) at 1000 frames, and still 0.62 px RMS with perfect ties. What is asserted is
+// expected mean) at 1000 frames, and still 0.63 px RMS with perfect ties. What is asserted is
 // what the fusion reaches; the figures are printed.
 TEST(MapFusionTest, OptimizationRemovesPosErrorAndDrift) {
   const Sweep s = MakeSweep(1000, 6, 2.0, 0.3, 7);
