@@ -1,6 +1,7 @@
 #include "irmosaic/map_fusion.h"
 
 #include <ceres/ceres.h>
+#include <time.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -19,6 +20,13 @@ namespace irmosaic {
 namespace {
 
 using Clock = std::chrono::steady_clock;
+
+// CPU time of the calling thread, ms.
+double ThreadCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
 
 // Image-point normalization for the homography update: n = (p - c) / s.
 struct Normalizer {
@@ -149,10 +157,25 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(pos_sigma_px > 0.0)) return fail("pos_sigma_px must be positive");
   if (!(tie_sigma_px > 0.0)) return fail("tie_sigma_px must be positive");
   if (!(robust_scale > 0.0)) return fail("robust_scale must be positive");
+  if (!(pair_robust_scale_px > 0.0)) return fail("pair_robust_scale_px must be positive");
   if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
   if (max_rerenders_per_solve < 0) return fail("max_rerenders_per_solve must be >= 0");
+  ceres::LinearSolverType solver_type;
+  if (!ceres::StringToLinearSolverType(linear_solver, &solver_type) ||
+      solver_type == ceres::DENSE_SCHUR || solver_type == ceres::SPARSE_SCHUR ||
+      solver_type == ceres::ITERATIVE_SCHUR) {
+    return fail(
+        "linear_solver must be a Ceres linear solver without Schur elimination "
+        "(e.g. SPARSE_NORMAL_CHOLESKY, DENSE_QR, CGNR), not '" +
+        linear_solver + "'");
+  }
+  ceres::SparseLinearAlgebraLibraryType library;
+  if (!ceres::StringToSparseLinearAlgebraLibraryType(sparse_library, &library)) {
+    return fail("sparse_library must be SUITE_SPARSE, CX_SPARSE or EIGEN_SPARSE, not '" +
+                sparse_library + "'");
+  }
   return true;
 }
 
@@ -303,8 +326,18 @@ class MapFusion::Impl {
         ++frames_registered_;
       }
       // Frames leaving the window are frozen; pairs with no frame in the window are dropped.
+      // While the optimizer runs behind (a loaded machine), frames it has not refined yet are
+      // held up to kMaxHeldWindows windows, so they are refined late rather than frozen with
+      // their chained placement; past that they are frozen, with a note.
       const size_t keep = 2 * static_cast<size_t>(options_.window_frames);
-      while (window_.size() > keep) window_.pop_front();
+      const size_t hard = kMaxHeldWindows * static_cast<size_t>(options_.window_frames);
+      while (window_.size() > keep) {
+        FramePlacement& oldest_placement = placements_[window_.front()->slot];
+        const bool unrefined = options_.optimize && oldest_placement.optimized_times == 0;
+        if (unrefined && window_.size() <= hard) break;
+        if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
+        window_.pop_front();
+      }
       const int64_t oldest = window_.front()->data.index;
       while (!pairs_.empty() && pairs_.front().base->data.index < oldest &&
              pairs_.front().templ->data.index < oldest) {
@@ -352,6 +385,9 @@ class MapFusion::Impl {
     std::vector<Eigen::Vector2d> base_points, template_points;
     std::vector<double> base_values, template_values;
     double tie_sigma_px = 0.0;
+    // Pair-level weight from its consistency with the rest of the network, carried from one
+    // solve to the next. Written by the solver only (one at a time), read by it.
+    std::shared_ptr<double> weight = std::make_shared<double>(1.0);
   };
 
   // Keeps at most max_ties_per_pair tie points, evenly spread over the list (the registrar
@@ -489,6 +525,7 @@ class MapFusion::Impl {
   // re-renders what moved.
   void SolveWindow(bool final_solve) {
     const auto start = Clock::now();
+    const double start_cpu_ms = ThreadCpuMs();
     std::vector<std::shared_ptr<Held>> frames;
     std::vector<Pair> pairs;
     std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
@@ -496,13 +533,14 @@ class MapFusion::Impl {
     {
       std::lock_guard<std::mutex> lock(mu_);
       if (window_.size() < 2) return;
-      // The last window_frames frames, extended back (up to twice that) to frames no solve
-      // has refined yet, so a foreground running ahead never freezes unrefined frames.
+      // The last window_frames frames, extended back (up to kMaxHeldWindows times that) to frames
+      // no solve has refined yet, so a foreground running ahead never freezes unrefined frames.
       size_t first = window_.size() > static_cast<size_t>(options_.window_frames)
                          ? window_.size() - options_.window_frames
                          : 0;
       while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
-             window_.size() - first < 2 * static_cast<size_t>(options_.window_frames)) {
+             window_.size() - first <
+                 kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
         --first;
       }
       frames.assign(window_.begin() + static_cast<std::ptrdiff_t>(first), window_.end());
@@ -523,21 +561,30 @@ class MapFusion::Impl {
     std::map<size_t, std::array<double, 8>> delta;
     for (const auto& [slot, placement] : current) delta[slot].fill(0.0);
 
-    // Two stages: plain least squares from the real-time placements (which may be many
-    // sigmas off, where a robust loss would call every tie an outlier), then Cauchy to
-    // down-weight the ties of bad pairs. One wrapper lets the loss change between stages.
+    // Stages: least squares from the real-time placements (which may be many sigmas off, where
+    // a robust loss would call every tie an outlier), then Cauchy per tie against single bad
+    // ties. A whole pair that is wrong by a few pixels is invisible to a per-tie loss: in a
+    // loop of four pairs, least squares leaves only a quarter of its error in its own
+    // residuals, about one sigma per tie. Its mean residual, though, is many standard errors
+    // off, so each pair also gets a weight 1 / (1 + (|mean residual| / pair_robust_scale_px)^2),
+    // recomputed after each stage (iteratively reweighted) and kept for the next solve.
     ceres::Problem::Options problem_options;
     problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
     ceres::Problem problem(problem_options);
-    ceres::LossFunctionWrapper tie_loss(nullptr, ceres::TAKE_OWNERSHIP);
+    std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> pair_loss;
+    std::vector<double> pair_weight;
     for (const Pair& p : pairs) {
       const size_t a = p.base->slot, b = p.templ->slot;
       const double inv_tie = 1.0 / std::max(options_.tie_sigma_px, p.tie_sigma_px);
+      pair_weight.push_back(*p.weight);
+      pair_loss.push_back(std::make_unique<ceres::LossFunctionWrapper>(
+          new ceres::ScaledLoss(nullptr, pair_weight.back(), ceres::TAKE_OWNERSHIP),
+          ceres::TAKE_OWNERSHIP));
       for (size_t t = 0; t < p.base_points.size(); ++t) {
         problem.AddResidualBlock(new ceres::AutoDiffCostFunction<TieCost, 2, 8, 8>(new TieCost(
                                      current[a].mosaic_from_image, current[b].mosaic_from_image,
                                      normalizer_, p.base_points[t], p.template_points[t], inv_tie)),
-                                 &tie_loss, delta[a].data(), delta[b].data());
+                                 pair_loss.back().get(), delta[a].data(), delta[b].data());
       }
     }
     const std::array<Eigen::Vector2d, 5> points = {
@@ -561,7 +608,9 @@ class MapFusion::Impl {
           nullptr, d.data());
     }
     ceres::Solver::Options solver;
-    solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+    ceres::StringToLinearSolverType(options_.linear_solver, &solver.linear_solver_type);
+    ceres::StringToSparseLinearAlgebraLibraryType(options_.sparse_library,
+                                                  &solver.sparse_linear_algebra_library_type);
     solver.max_num_iterations = final_solve ? 20 : 6;
     solver.num_threads = 1;
     solver.logging_type = ceres::SILENT;
@@ -571,10 +620,41 @@ class MapFusion::Impl {
     solver.gradient_tolerance = 1e-16;
     solver.parameter_tolerance = 1e-12;
     ceres::Solver::Summary summary;
-    ceres::Solve(solver, &problem, &summary);
-    tie_loss.Reset(new ceres::CauchyLoss(options_.robust_scale), ceres::TAKE_OWNERSHIP);
-    ceres::Solve(solver, &problem, &summary);
-
+    // Pair weights from the mean tie residual of each pair at the current solution.
+    auto reweight_pairs = [&] {
+      for (size_t k = 0; k < pairs.size(); ++k) {
+        const Pair& p = pairs[k];
+        const size_t a = p.base->slot, b = p.templ->slot;
+        const Eigen::Matrix3d ha =
+            ApplyDelta(current[a].mosaic_from_image, normalizer_, delta[a].data());
+        const Eigen::Matrix3d hb =
+            ApplyDelta(current[b].mosaic_from_image, normalizer_, delta[b].data());
+        Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+        for (size_t t = 0; t < p.base_points.size(); ++t) {
+          mean += ApplyHomography(ha, p.base_points[t]) - ApplyHomography(hb, p.template_points[t]);
+        }
+        mean /= static_cast<double>(std::max<size_t>(1, p.base_points.size()));
+        const double ratio = mean.norm() / options_.pair_robust_scale_px;
+        pair_weight[k] = 1.0 / (1.0 + ratio * ratio);
+      }
+    };
+    const int stages = final_solve ? 4 : 2;
+    for (int stage = 0; stage < stages; ++stage) {
+      if (stage > 0) {
+        reweight_pairs();
+        for (size_t k = 0; k < pairs.size(); ++k) {
+          pair_loss[k]->Reset(new ceres::ScaledLoss(new ceres::CauchyLoss(options_.robust_scale),
+                                                    pair_weight[k], ceres::TAKE_OWNERSHIP),
+                              ceres::TAKE_OWNERSHIP);
+        }
+      }
+      ceres::Solve(solver, &problem, &summary);
+    }
+    reweight_pairs();
+    for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
+    const double predicted_rmse_px = final_solve && options_.estimate_precision
+                                         ? PredictedRmse(&problem, delta, current, first_slot)
+                                         : 0.0;
     // Residuals per frame after the solve.
     std::map<size_t, std::pair<double, int>> residual;  // slot -> (sum sq, count)
     std::map<size_t, Eigen::Matrix3d> solved;
@@ -642,12 +722,56 @@ class MapFusion::Impl {
       stats_.last_solve_ms = ms;
       stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
       stats_.total_solve_ms += ms;
+      const double cpu_ms = ThreadCpuMs() - start_cpu_ms;
+      stats_.max_solve_cpu_ms = std::max(stats_.max_solve_cpu_ms, cpu_ms);
+      stats_.total_solve_cpu_ms += cpu_ms;
       stats_.rerendered_frames += static_cast<int64_t>(moved.size());
+      if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
     }
     for (const auto& [frame, placement] : moved) {
       Render(*frame, placement, final_solve ? &foreground_ortho_ : &background_ortho_);
       if (sink_) sink_->FramePlaced(placement);
     }
+  }
+
+  // Root mean of the expected squared placement error of the frames from `first_slot` on, from
+  // the covariance of the solved problem (Ceres; inverse of J^T J at the solution): a 5x5 grid
+  // of each frame's pixels, mapped through the Jacobian of its placement.
+  double PredictedRmse(ceres::Problem* problem, std::map<size_t, std::array<double, 8>>& delta,
+                       std::map<size_t, FramePlacement>& current, size_t first_slot) const {
+    ceres::Covariance covariance{ceres::Covariance::Options()};
+    std::vector<std::pair<const double*, const double*>> blocks;
+    for (auto& [slot, d] : delta) {
+      if (slot >= first_slot) blocks.emplace_back(d.data(), d.data());
+    }
+    if (blocks.empty() || !covariance.Compute(blocks, problem)) return 0.0;
+    double sum = 0.0;
+    int frames = 0;
+    for (auto& [slot, d] : delta) {
+      if (slot < first_slot) continue;
+      Eigen::Matrix<double, 8, 8, Eigen::RowMajor> c;
+      covariance.GetCovarianceBlock(d.data(), d.data(), c.data());
+      double trace = 0.0;
+      for (int j = 0; j < 5; ++j) {
+        for (int i = 0; i < 5; ++i) {
+          const Eigen::Vector2d p((camera_.width - 1) * i / 4.0, (camera_.height - 1) * j / 4.0);
+          Eigen::Matrix<double, 2, 8> jacobian;
+          for (int k = 0; k < 8; ++k) {
+            std::array<double, 8> plus = d, minus = d;
+            plus[k] += 1e-6;
+            minus[k] -= 1e-6;
+            const Eigen::Matrix3d& h = current[slot].mosaic_from_image;
+            jacobian.col(k) = (ApplyHomography(ApplyDelta(h, normalizer_, plus.data()), p) -
+                               ApplyHomography(ApplyDelta(h, normalizer_, minus.data()), p)) /
+                              2e-6;
+          }
+          trace += (jacobian * c * jacobian.transpose()).trace();
+        }
+      }
+      sum += trace / 25.0;
+      ++frames;
+    }
+    return std::sqrt(sum / frames);
   }
 
   // Gains and offsets of the window's frames from the radiometric ties (linear least squares,
@@ -716,6 +840,8 @@ class MapFusion::Impl {
     }
     return result;
   }
+
+  static constexpr size_t kMaxHeldWindows = 4;
 
   FusionOptions options_;
   CameraModel camera_;

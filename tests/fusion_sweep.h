@@ -74,12 +74,15 @@ inline double PlacementRmse(const Eigen::Matrix3d& h, const Eigen::Matrix3d& tru
   return std::sqrt(sum / 25.0);
 }
 
-// Ties from the true relative homography on a grid inside the overlap, with Gaussian noise.
+// Ties from the true relative homography on a grid inside the overlap, with Gaussian noise;
+// the pair `corrupt` (base, template) gets `corrupt_px` added to every base point's x.
 inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t seed,
-                                     std::pair<int64_t, int64_t> corrupt = {-1, -1}) {
+                                     std::pair<int64_t, int64_t> corrupt = {-1, -1},
+                                     double corrupt_px = 12.0) {
   auto rng = std::make_shared<std::mt19937>(seed);
   auto mu = std::make_shared<std::mutex>();
-  return [&s, noise_px, rng, mu, corrupt](const FusionFrame& base, const FusionFrame& templ) {
+  return [&s, noise_px, rng, mu, corrupt, corrupt_px](const FusionFrame& base,
+                                                      const FusionFrame& templ) {
     std::lock_guard<std::mutex> lock(*mu);
     std::normal_distribution<double> noise(0.0, noise_px);
     const Eigen::Matrix3d base_from_templ = s.truth[base.index].inverse() * s.truth[templ.index];
@@ -92,7 +95,7 @@ inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t s
             pb.y() > s.camera.height - 8) {
           continue;
         }
-        if (base.index == corrupt.first && templ.index == corrupt.second) pb.x() += 12.0;
+        if (base.index == corrupt.first && templ.index == corrupt.second) pb.x() += corrupt_px;
         m.template_points.push_back(pt + Eigen::Vector2d(noise(*rng), noise(*rng)));
         m.base_points.push_back(pb + Eigen::Vector2d(noise(*rng), noise(*rng)));
       }

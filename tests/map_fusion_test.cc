@@ -30,7 +30,8 @@ struct RunResult {
   FusionStats stats;
 };
 
-RunResult RunFusion(const Sweep& s, FusionOptions options, PairRegisterFn registrar) {
+RunResult RunFusion(const Sweep& s, FusionOptions options, PairRegisterFn registrar,
+                    double rate_fps = 100.0) {
   options.render = false;
   MapFusion fusion(options, s.camera, std::move(registrar), nullptr);
   const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
@@ -43,8 +44,10 @@ RunResult RunFusion(const Sweep& s, FusionOptions options, PairRegisterFn regist
     f.pos_mosaic_from_image = s.pos[i];
     f.prior_sqrt_information = s.prior[i];
     fusion.Push(std::move(f));
-    // Frames arrive at 4x the sensor rate (the pipeline's target), not all at once.
-    std::this_thread::sleep_until(start + std::chrono::microseconds(10000 * (i + 1)));
+    // Frames arrive at a steady rate (100/s: 4x the sensor, the pipeline's target), not all
+    // at once, so the optimizer runs behind the foreground as it would in flight.
+    std::this_thread::sleep_until(
+        start + std::chrono::microseconds(static_cast<int64_t>(1e6 * (i + 1) / rate_fps)));
   }
   fusion.Finish();
   RunResult result;
@@ -70,13 +73,19 @@ double Mean(const std::vector<double>& v, size_t from = 0, size_t to = SIZE_MAX)
 
 double Max(const std::vector<double>& v) { return *std::max_element(v.begin(), v.end()); }
 
+// The issue's run: >= 1000 frames, POS 2 m / 0.3 deg (white per frame, as the simulator draws
+// it), ties with 0.15 px noise. The issue asks mean <= 0.5 px and max <= 1.5 px against the
+// truth; that is below what the data allow: the Cramer-Rao bound of this network (Ceres
+// covariance of a batch solve over all frames, docs/fusion.md) is 1.2 px RMS (about 1.05 px
+// expected mean) at 1000 frames, and still 0.63 px RMS with perfect ties. What is asserted is
+// what the fusion reaches; the figures are printed.
 TEST(MapFusionTest, OptimizationRemovesPosErrorAndDrift) {
-  const Sweep s = MakeSweep(600, 6, 2.0, 0.3, 7);
+  const Sweep s = MakeSweep(1000, 6, 2.0, 0.3, 7);
   FusionOptions options;
   options.solve_every_frames = 30;
   const RunResult optimized = RunFusion(s, options, IdealRegistrar(s, 0.15, 11));
   options.optimize = false;
-  const RunResult chained = RunFusion(s, options, IdealRegistrar(s, 0.15, 11));
+  const RunResult chained = RunFusion(s, options, IdealRegistrar(s, 0.15, 11), 400.0);
   std::vector<double> pos_rmse;
   for (size_t i = 0; i < s.pos.size(); ++i) {
     pos_rmse.push_back(PlacementRmse(s.pos[i], s.truth[i], s.camera));
@@ -89,7 +98,7 @@ TEST(MapFusionTest, OptimizationRemovesPosErrorAndDrift) {
       Mean(optimized.seam), Max(optimized.seam), static_cast<long long>(optimized.stats.solves),
       optimized.stats.max_solve_ms);
   std::printf("chained: absolute first 50 %.3f px, last 50 %.3f px; seams mean %.3f max %.3f px\n",
-              Mean(chained.rmse, 0, 50), Mean(chained.rmse, 550), Mean(chained.seam),
+              Mean(chained.rmse, 0, 50), Mean(chained.rmse, 950), Mean(chained.seam),
               Max(chained.seam));
   // Seams: neighbouring frames fit each other to a fraction of a pixel.
   EXPECT_LE(Mean(optimized.seam), 0.3);
@@ -98,26 +107,31 @@ TEST(MapFusionTest, OptimizationRemovesPosErrorAndDrift) {
   EXPECT_LE(Mean(optimized.rmse), 0.1 * Mean(pos_rmse));
   EXPECT_LE(Max(optimized.rmse), 0.1 * Max(pos_rmse));
   // Without the optimizer, chaining drifts: the end is far worse than the start.
-  EXPECT_GT(Mean(chained.rmse, 550), 2.0 * Mean(chained.rmse, 0, 50));
+  EXPECT_GT(Mean(chained.rmse, 950), 2.0 * Mean(chained.rmse, 0, 50));
 }
 
-TEST(MapFusionTest, CorruptedPairIsDownWeighted) {
+class CorruptedPairTest : public ::testing::TestWithParam<double> {};
+
+TEST_P(CorruptedPairTest, IsDownWeighted) {
   const Sweep s = MakeSweep(240, 6, 2.0, 0.3, 3);
   FusionOptions options;
   options.solve_every_frames = 30;
-  // Frame 100 registered to frame 99 with a 12 px error in x on every tie point. (Errors of
-  // 3-6 px are only partly rejected: the network bends by 1-2 px instead; docs/fusion.md.)
-  const RunResult result = RunFusion(s, options, IdealRegistrar(s, 0.15, 5, {99, 100}));
-  const RunResult clean = RunFusion(s, options, IdealRegistrar(s, 0.15, 5));
+  // Frame 100 registered to frame 99 with an error of GetParam() px in x on every tie point.
+  const double corrupt_px = GetParam();
+  const RunResult result =
+      RunFusion(s, options, IdealRegistrar(s, 0.15, 5, {99, 100}, corrupt_px), 200.0);
+  static const RunResult clean = RunFusion(s, options, IdealRegistrar(s, 0.15, 5), 200.0);
   std::printf(
-      "corrupted pair: seam 99/100 %.3f px, absolute 99/100 %.3f / %.3f px "
+      "corrupted pair (%.0f px): seam 99/100 %.3f px, absolute 99/100 %.3f / %.3f px "
       "(clean run: seam %.3f, absolute %.3f / %.3f)\n",
-      result.seam[99], result.rmse[99], result.rmse[100], clean.seam[99], clean.rmse[99],
-      clean.rmse[100]);
-  EXPECT_LT(result.seam[99], 1.0);  // 12 px of corruption, down-weighted below 1 px.
+      corrupt_px, result.seam[99], result.rmse[99], result.rmse[100], clean.seam[99],
+      clean.rmse[99], clean.rmse[100]);
+  EXPECT_LT(result.seam[99], 1.0);  // The corruption is down-weighted below 1 px.
   EXPECT_LT(result.rmse[99], clean.rmse[99] + 1.0);
   EXPECT_LT(result.rmse[100], clean.rmse[100] + 1.0);
 }
+
+INSTANTIATE_TEST_SUITE_P(MapFusionTest, CorruptedPairTest, ::testing::Values(3.0, 6.0, 12.0));
 
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
@@ -126,6 +140,18 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.window_frames = 1;
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("window_frames"), std::string::npos);
+  options = FusionOptions();
+  options.linear_solver = "SPARSE_SCHUR";  // Nothing to eliminate: ties join frames directly.
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("linear_solver"), std::string::npos);
+  options = FusionOptions();
+  options.sparse_library = "NO_SUCH_LIBRARY";
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("sparse_library"), std::string::npos);
+  options = FusionOptions();
+  options.pair_robust_scale_px = 0.0;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("pair_robust_scale_px"), std::string::npos);
 }
 
 }  // namespace

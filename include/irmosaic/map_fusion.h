@@ -82,17 +82,26 @@ struct FusionOptions {
                                         // bring no prior_sqrt_information.
   double tie_sigma_px = 0.3;            // Tie point accuracy (1 sigma, px).
   double robust_scale = 3.0;            // Cauchy loss scale, in sigmas of the tie residual.
+  double pair_robust_scale_px = 0.5;    // A pair whose mean tie residual is this far off gets
+                                        // half weight (a whole pair wrong by a few px).
   double rerender_threshold_px = 0.25;  // Re-render a frame that moved more than this.
   // Re-renders per background solve, the frames that moved most since they were painted
   // first (0: no limit); the final solve re-renders every frame that moved. Bounds the
   // painting and tile writing a solve causes (each re-render rewrites a few tiles).
   int max_rerenders_per_solve = 16;
-  bool optimize = true;           // Run the global optimization thread.
-  bool compensate_gain = true;    // Per-frame gain and offset from the overlaps.
-  double gain_prior_sigma = 0.5;  // Keeps the global level: gain ~ 1 +- this.
-  int feather_px = 24;            // Seam blending ramp width.
-  int tie_patch_radius_px = 3;    // Radiometric samples: mean of a (2r+1)^2 patch.
-  bool render = true;             // Paint into the sink (off for geometry-only runs).
+  bool optimize = true;                 // Run the global optimization thread.
+  bool compensate_gain = true;          // Per-frame gain and offset from the overlaps.
+  double gain_prior_sigma = 0.5;        // Keeps the global level: gain ~ 1 +- this.
+  int feather_px = 24;                  // Seam blending ramp width.
+  int tie_patch_radius_px = 3;          // Radiometric samples: mean of a (2r+1)^2 patch.
+  bool render = true;                   // Paint into the sink (off for geometry-only runs).
+  // Ceres linear solver and sparse library by their Ceres names (docs/fusion.md has the
+  // measured choice).
+  std::string linear_solver = "SPARSE_NORMAL_CHOLESKY";
+  std::string sparse_library = "SUITE_SPARSE";
+  // At Finish(), the covariance of the last solve (Ceres) gives the expected placement RMSE
+  // of its frames under the tie and POS error models: FusionStats::predicted_rmse_px.
+  bool estimate_precision = false;
 
   // Returns false and a message when an option is out of range.
   bool IsValid(std::string* error) const;
@@ -110,7 +119,12 @@ struct FusionStats {
   double last_solve_ms = 0.0;
   double max_solve_ms = 0.0;
   double total_solve_ms = 0.0;
+  double max_solve_cpu_ms = 0.0;     // The solving thread's CPU time (a loaded machine inflates
+  double total_solve_cpu_ms = 0.0;   // wall time, not this).
   int64_t optimizer_lag_frames = 0;  // Frames pushed but not yet in a finished solve.
+  // Root mean of the predicted squared placement error (5x5 grid of each frame, mosaic px)
+  // over the frames of the final solve; 0 unless FusionOptions::estimate_precision.
+  double predicted_rmse_px = 0.0;
 };
 
 // Map fusion (paper section 5): a real-time mapping step in the caller's thread and a global
