@@ -280,7 +280,7 @@ int Main(const Config& config) {
       const bool plugin = r % 2 == 1;
       int reads = 0, problems = 0;
       int64_t reader_pixels = 0;
-      std::string first;
+      std::string first, last;
       while (!fs::exists(done_flag)) {
         // Readers start at the first generation with tiles (the plug-in refuses an empty
         // store: GDAL has no 0 x 0 raster), then read in a loop until the run ends.
@@ -292,9 +292,11 @@ int Main(const Config& config) {
             ReadStore(plugin ? live : live + "/mosaic.vrt", plugin, &reader_pixels);
         ++reads;
         if (!p.empty() && problems++ == 0) first = p;
+        if (!p.empty()) last = p;
       }
       std::ostringstream report;
-      report << reads << " " << problems << " " << reader_pixels << " " << first;
+      report << reads << " " << problems << " " << reader_pixels << " first: " << first
+             << " last: " << last;
       const std::string text = report.str();
       if (write(fds[1], text.data(), text.size()) < 0) _exit(2);
       _exit(0);
