@@ -77,6 +77,10 @@ int RunRun(int argc, char** argv) {
   args.Option("--att-sigma", "POS attitude accuracy (1 sigma), degrees", "0.3", "DEG");
   args.Option("--radius", "coarse search radius around the POS prediction, pixels", "64", "PX");
   args.Option("--max-gap", "POS gap beyond which frames get no pose, seconds", "1", "S");
+  args.Option("--max-range",
+              "ground farther than this from the camera is clipped off a frame (with a warning), "
+              "metres",
+              "30000", "M");
   args.Option("--fps", "frame rate of a video or image folder", "25", "HZ");
   args.Option("--t0", "time of the first frame of a video or image folder, seconds", "0", "S");
   args.Option("--threads", "OpenCV threads", "2", "N");
@@ -112,6 +116,7 @@ int RunRun(int argc, char** argv) {
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
   options.search_radius_px = args.GetDouble("--radius");
+  options.max_range_m = args.GetDouble("--max-range");
   Mosaicker mosaicker(options, camera, pos);
 
   const auto start = Clock::now();
@@ -128,7 +133,10 @@ int RunRun(int argc, char** argv) {
   std::string problem;
   while (true) {
     const FrameSource::Status status = source->Next(&frame, &problem);
-    if (status == FrameSource::Status::kEnd) break;
+    if (status == FrameSource::Status::kEnd) {
+      if (!problem.empty()) std::cerr << "\nrun: warning: " << problem << "\n";
+      break;
+    }
     if (resume_after >= 0 && frame.index > resume_after) mosaicker.SetReplay(false);
     ++done;
     if (status == FrameSource::Status::kBadFrame) {
@@ -138,6 +146,7 @@ int RunRun(int argc, char** argv) {
     }
     const PushResult result = mosaicker.Push(frame.index, frame.time_s, frame.image);
     if (!result.placed()) std::cerr << "\nrun: warning: skipped " << result.reason << "\n";
+    if (!result.warning.empty()) std::cerr << "\nrun: warning: " << result.warning << "\n";
     progress.Update(done);
   }
   mosaicker.SetReplay(false);

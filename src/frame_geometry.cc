@@ -4,6 +4,7 @@
 #include <Eigen/SVD>
 #include <GeographicLib/Geocentric.hpp>
 #include <cmath>
+#include <opencv2/imgproc.hpp>
 #include <sstream>
 
 namespace irmosaic {
@@ -135,6 +136,89 @@ Eigen::Matrix3d FitHomography(const std::vector<Eigen::Vector2d>& from,
   return result / result(2, 2);
 }
 
+namespace {
+
+std::string RayProblem(const Eigen::Vector2d& px, const RayHit& hit, double max_range_m) {
+  std::ostringstream problem;
+  problem << "the ray through pixel (" << px.x() << ", " << px.y() << ") ";
+  switch (hit.status) {
+    case RayHit::Status::kAboveHorizon:
+      problem << "points at or above the horizon";
+      break;
+    case RayHit::Status::kBeyondRange:
+      problem << "meets the ground " << hit.range_m << " m away, beyond the limit of "
+              << max_range_m << " m";
+      break;
+    case RayHit::Status::kCameraBelowGround:
+      problem << "starts below the ground";
+      break;
+    case RayHit::Status::kOk:
+      break;
+  }
+  return problem.str();
+}
+
+// The part of the image whose rays meet the ground within the range limit. It is convex (the
+// rays within a range of a camera above flat ground form a cone about the vertical), so it is
+// the convex hull of in-range samples of a fine grid plus the boundary points found by
+// bisection between neighbouring in- and out-of-range samples (to 1/64 of the grid step).
+std::vector<Eigen::Vector2d> InRangeRegion(const CameraModel& camera, const CameraInEcef& located,
+                                           const GroundModel& ground, double max_range_m) {
+  constexpr int kCols = 33;
+  const int rows = std::max(3, kCols * camera.height / std::max(camera.width, 1));
+  const double x_max = camera.width - 0.5, y_max = camera.height - 0.5;
+  auto at = [&](int i, int j) {
+    return Eigen::Vector2d(-0.5 + (x_max + 0.5) * i / (kCols - 1),
+                           -0.5 + (y_max + 0.5) * j / (rows - 1));
+  };
+  auto in_range = [&](const Eigen::Vector2d& px) {
+    return IntersectGround(camera, located, px, ground, max_range_m).ok();
+  };
+  std::vector<char> inside(static_cast<size_t>(kCols) * rows);
+  for (int j = 0; j < rows; ++j)
+    for (int i = 0; i < kCols; ++i) inside[j * kCols + i] = in_range(at(i, j));
+  std::vector<cv::Point2f> points;
+  auto add = [&](const Eigen::Vector2d& p) {
+    points.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()));
+  };
+  auto bisect = [&](Eigen::Vector2d good, Eigen::Vector2d bad) {
+    for (int k = 0; k < 6; ++k) {
+      const Eigen::Vector2d mid = 0.5 * (good + bad);
+      (in_range(mid) ? good : bad) = mid;
+    }
+    add(good);
+  };
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < kCols; ++i) {
+      if (!inside[j * kCols + i]) continue;
+      add(at(i, j));
+      const int neighbours[4][2] = {{i + 1, j}, {i - 1, j}, {i, j + 1}, {i, j - 1}};
+      for (const auto& n : neighbours) {
+        if (n[0] < 0 || n[0] >= kCols || n[1] < 0 || n[1] >= rows) continue;
+        if (!inside[n[1] * kCols + n[0]]) bisect(at(i, j), at(n[0], n[1]));
+      }
+    }
+  }
+  std::vector<Eigen::Vector2d> polygon;
+  if (points.size() < 3) return polygon;
+  std::vector<cv::Point2f> hull;
+  cv::convexHull(points, hull);
+  for (const cv::Point2f& p : hull) polygon.emplace_back(p.x, p.y);
+  return polygon;
+}
+
+double PolygonArea(const std::vector<Eigen::Vector2d>& polygon) {
+  double twice = 0.0;
+  for (size_t k = 0; k < polygon.size(); ++k) {
+    const Eigen::Vector2d& a = polygon[k];
+    const Eigen::Vector2d& b = polygon[(k + 1) % polygon.size()];
+    twice += a.x() * b.y() - a.y() * b.x();
+  }
+  return std::abs(twice) / 2.0;
+}
+
+}  // namespace
+
 FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
                                    const LocalFrame& frame, const MosaicGrid& grid,
                                    const GroundModel& ground, const GeometryOptions& options) {
@@ -142,51 +226,110 @@ FrameGeometry ComputeFrameGeometry(const CameraModel& camera, const Pose& pose,
   const CameraInEcef located = LocateCamera(camera, pose);
   const double x_max = camera.width - 0.5, y_max = camera.height - 0.5;
   const int n = std::max(options.fit_grid, 2);
-  std::vector<Eigen::Vector2d> image_pts, mosaic_pts;
-  for (int j = 0; j < n; ++j) {
-    for (int i = 0; i < n; ++i) {
-      const Eigen::Vector2d px(-0.5 + (x_max + 0.5) * i / (n - 1),
-                               -0.5 + (y_max + 0.5) * j / (n - 1));
-      const RayHit hit = IntersectGround(camera, located, px, ground, options.max_range_m);
-      if (!hit.ok()) {
-        std::ostringstream problem;
-        problem << "the ray through pixel (" << px.x() << ", " << px.y() << ") ";
-        switch (hit.status) {
-          case RayHit::Status::kAboveHorizon:
-            problem << "points at or above the horizon";
-            break;
-          case RayHit::Status::kBeyondRange:
-            problem << "meets the ground " << hit.range_m << " m away, beyond the limit of "
-                    << options.max_range_m << " m";
-            break;
-          case RayHit::Status::kCameraBelowGround:
-            problem << "starts below the ground";
-            break;
-          case RayHit::Status::kOk:
-            break;
+  // The fit samples an n x n grid over the frame, or over the kept part of a clipped frame.
+  Eigen::Vector2d lo(-0.5, -0.5), hi(x_max, y_max);
+  std::vector<cv::Point2f> clip_contour;
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    std::vector<Eigen::Vector2d> image_pts, mosaic_pts;
+    std::string beyond;  // First ray beyond the range limit.
+    for (int j = 0; j < n; ++j) {
+      for (int i = 0; i < n; ++i) {
+        const Eigen::Vector2d px(lo.x() + (hi.x() - lo.x()) * i / (n - 1),
+                                 lo.y() + (hi.y() - lo.y()) * j / (n - 1));
+        if (!clip_contour.empty() &&
+            cv::pointPolygonTest(
+                clip_contour, cv::Point2f(static_cast<float>(px.x()), static_cast<float>(px.y())),
+                false) < 0) {
+          continue;
         }
-        result.problem = problem.str();
+        const RayHit hit = IntersectGround(camera, located, px, ground, options.max_range_m);
+        if (hit.status == RayHit::Status::kBeyondRange) {
+          if (beyond.empty()) beyond = RayProblem(px, hit, options.max_range_m);
+          continue;
+        }
+        if (!hit.ok()) {
+          // Above the horizon or below the ground: the pose is wrong, nothing to clip.
+          result.problem = RayProblem(px, hit, options.max_range_m);
+          return result;
+        }
+        image_pts.push_back(px);
+        mosaic_pts.push_back(
+            grid.PixelFromPlane(frame.PlaneFromGeodetic(hit.geodetic.x(), hit.geodetic.y())));
+      }
+    }
+    if (attempt == 0 && !beyond.empty()) {
+      // Ground beyond the limit: keep the part of the frame within it, and fit over that part.
+      result.image_clip = InRangeRegion(camera, located, ground, options.max_range_m);
+      const double frame_area = (x_max + 0.5) * (y_max + 0.5);
+      result.kept_fraction =
+          result.image_clip.size() >= 3 ? PolygonArea(result.image_clip) / frame_area : 0.0;
+      if (result.kept_fraction < 0.01) {
+        result.problem = beyond + "; less than 1% of the frame sees ground within it";
+        result.image_clip.clear();
         return result;
       }
+      lo = hi = result.image_clip.front();
+      for (const Eigen::Vector2d& p : result.image_clip) {
+        clip_contour.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()));
+        lo = lo.cwiseMin(p);
+        hi = hi.cwiseMax(p);
+      }
+      std::ostringstream warning;
+      warning << "ground beyond the range limit of " << options.max_range_m
+              << " m clipped off the frame (" << beyond << "); "
+              << std::lround(100.0 * result.kept_fraction) << "% of the frame kept";
+      result.warning = warning.str();
+      continue;
+    }
+    // The kept polygon's vertices are in range by construction and make the fit span it.
+    for (const Eigen::Vector2d& px : result.image_clip) {
+      const RayHit hit = IntersectGround(camera, located, px, ground, options.max_range_m);
+      if (!hit.ok()) continue;
       image_pts.push_back(px);
       mosaic_pts.push_back(
           grid.PixelFromPlane(frame.PlaneFromGeodetic(hit.geodetic.x(), hit.geodetic.y())));
     }
+    if (image_pts.size() < 8) {
+      result.problem = beyond.empty() ? "too few rays meet the ground"
+                                      : beyond + "; too little of the frame sees ground within it";
+      return result;
+    }
+    result.mosaic_from_image = FitHomography(image_pts, mosaic_pts);
+    double sum_sq = 0.0;
+    for (size_t k = 0; k < image_pts.size(); ++k) {
+      const double e =
+          (ApplyHomography(result.mosaic_from_image, image_pts[k]) - mosaic_pts[k]).norm();
+      sum_sq += e * e;
+      result.fit_max_px = std::max(result.fit_max_px, e);
+    }
+    result.fit_rms_px = std::sqrt(sum_sq / static_cast<double>(image_pts.size()));
+    // Footprint: the frame's corners, or for a clipped frame the kept polygon's vertices
+    // nearest to them.
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(x_max, -0.5), Eigen::Vector2d(x_max, y_max),
+        Eigen::Vector2d(-0.5, y_max)};
+    const std::array<int, 4> corner_index = {0, n - 1, n * n - 1, n * (n - 1)};
+    for (int c = 0; c < 4; ++c) {
+      if (result.image_clip.empty()) {  // The exact rays of the grid's corners.
+        result.footprint_m[c] = grid.PlaneFromPixel(mosaic_pts[corner_index[c]]);
+        continue;
+      }
+      Eigen::Vector2d corner = corners[c];
+      {
+        double best = INFINITY;
+        for (const Eigen::Vector2d& p : result.image_clip) {
+          if ((p - corners[c]).norm() < best) {
+            best = (p - corners[c]).norm();
+            corner = p;
+          }
+        }
+      }
+      result.footprint_m[c] =
+          grid.PlaneFromPixel(ApplyHomography(result.mosaic_from_image, corner));
+    }
+    result.ok = true;
+    return result;
   }
-  result.mosaic_from_image = FitHomography(image_pts, mosaic_pts);
-  double sum_sq = 0.0;
-  for (size_t k = 0; k < image_pts.size(); ++k) {
-    const double e =
-        (ApplyHomography(result.mosaic_from_image, image_pts[k]) - mosaic_pts[k]).norm();
-    sum_sq += e * e;
-    result.fit_max_px = std::max(result.fit_max_px, e);
-  }
-  result.fit_rms_px = std::sqrt(sum_sq / static_cast<double>(image_pts.size()));
-  const std::array<int, 4> corner_index = {0, n - 1, n * n - 1, n * (n - 1)};
-  for (int c = 0; c < 4; ++c) {
-    result.footprint_m[c] = grid.PlaneFromPixel(mosaic_pts[corner_index[c]]);
-  }
-  result.ok = true;
   return result;
 }
 

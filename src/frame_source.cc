@@ -1,6 +1,7 @@
 #include "irmosaic/frame_source.h"
 
 #include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
@@ -27,6 +28,37 @@ cv::Mat ToPipelineImage(const cv::Mat& image) {
 
 namespace {
 
+std::string DepthName(int depth) {
+  return depth == CV_8U ? "8-bit" : depth == CV_16U ? "16-bit" : "float";
+}
+
+// Every frame of a stream must have the first frame's size and bit depth: the camera model and
+// the store's pixel type follow the first. A frame that differs is skipped with the reason
+// (OpenCV's video backends scale frames to the stream's size themselves; image sequences and
+// frame lists can mix anything).
+class StreamShape {
+ public:
+  // "" if `frame` matches the stream's first frame (remembered on the first call).
+  std::string Check(const SourceFrame& frame) {
+    const cv::Mat& image = frame.image;
+    if (first_.empty()) {
+      first_ = image.size();
+      depth_ = image.depth();
+      return "";
+    }
+    if (image.size() == first_ && image.depth() == depth_) return "";
+    return frame.name + " (frame " + std::to_string(frame.index) + ") is " +
+           std::to_string(image.cols) + "x" + std::to_string(image.rows) + " " +
+           DepthName(image.depth()) + " but the stream started at " + std::to_string(first_.width) +
+           "x" + std::to_string(first_.height) + " " + DepthName(depth_) +
+           "; skipped. Fix: give every frame the size and bit depth of the first";
+  }
+
+ private:
+  cv::Size first_;
+  int depth_ = -1;
+};
+
 // A list of image files with their times.
 class FileListSource : public FrameSource {
  public:
@@ -38,6 +70,7 @@ class FileListSource : public FrameSource {
   explicit FileListSource(std::vector<Entry> entries) : entries_(std::move(entries)) {}
 
   Status Next(SourceFrame* frame, std::string* problem) override {
+    problem->clear();
     if (next_ >= entries_.size()) return Status::kEnd;
     const Entry& e = entries_[next_++];
     frame->index = e.index;
@@ -45,10 +78,12 @@ class FileListSource : public FrameSource {
     frame->name = e.path;
     frame->image = ToPipelineImage(cv::imread(e.path, cv::IMREAD_UNCHANGED));
     if (frame->image.empty()) {
-      *problem = "cannot read image " + e.path + " (missing, truncated or not an image)";
+      *problem = "cannot read image " + e.path + " (frame " + std::to_string(e.index) +
+                 ": missing, truncated or not an image); skipped";
       return Status::kBadFrame;
     }
-    return Status::kFrame;
+    *problem = shape_.Check(*frame);
+    return problem->empty() ? Status::kFrame : Status::kBadFrame;
   }
   int64_t size() const override { return static_cast<int64_t>(entries_.size()); }
   void SkipThrough(int64_t index) override {
@@ -58,10 +93,18 @@ class FileListSource : public FrameSource {
  private:
   std::vector<Entry> entries_;
   size_t next_ = 0;
+  StreamShape shape_;
 };
 
+// A video through OpenCV (FFmpeg). A packet the decoder rejects makes grab() fail once and the
+// next grab() continue with the following frame (measured with a zeroed MJPEG frame in an AVI),
+// so a failed grab followed by a good one within kMaxLostFrames is a lost frame, reported as a
+// bad frame with its own index, and the frames after it keep their indices and times. Only
+// kMaxLostFrames failures in a row end the stream.
 class VideoSource : public FrameSource {
  public:
+  static constexpr int kMaxLostFrames = 25;
+
   VideoSource(const std::string& path, const Options& options) : path_(path), options_(options) {
     capture_.open(path);
     if (!capture_.isOpened()) {
@@ -72,34 +115,90 @@ class VideoSource : public FrameSource {
                        "format FFmpeg reads, e.g. ffmpeg -i IN -c:v ffv1 OUT.mkv");
     }
     const double count = capture_.get(cv::CAP_PROP_FRAME_COUNT);
-    size_ = count > 0 ? static_cast<int64_t>(count) : -1;
+    size_ = count > 0 && count < 1e12 ? static_cast<int64_t>(count) : -1;
     capture_.set(cv::CAP_PROP_CONVERT_RGB, 0);
+    // A video with no decodable frame is refused here, not reported as an empty run later.
+    if (!GrabNext(&lost_pending_)) {
+      throw InputError({path, 0, 0, ""},
+                       "the video holds no frame that can be decoded (0 frames, or the first " +
+                           std::to_string(kMaxLostFrames + 1) + " are damaged)",
+                       "check the recording; convert it with ffmpeg -i IN -c:v ffv1 OUT.mkv to "
+                       "see FFmpeg's own errors");
+    }
+    pending_ = true;
   }
   Status Next(SourceFrame* frame, std::string* problem) override {
-    cv::Mat image;
-    if (!capture_.grab()) return Status::kEnd;
+    problem->clear();
+    if (!pending_) {
+      if (!GrabNext(&lost_pending_)) {
+        if (size_ > 0 && next_ < size_) {
+          *problem = path_ + " ends after " + std::to_string(next_) +
+                     " frames but its header announces " + std::to_string(size_) +
+                     " (a truncated file?); the run stops at the last frame read";
+        }
+        return Status::kEnd;
+      }
+      pending_ = true;
+    }
     const int64_t i = next_++;
     frame->index = i;
     frame->time_s = options_.t0_s + static_cast<double>(i) / options_.fps;
     frame->name = path_ + " frame " + std::to_string(i);
+    if (lost_pending_ > 0) {
+      --lost_pending_;
+      *problem = "cannot decode " + frame->name + " (damaged data in the video); skipped";
+      frame->image.release();
+      return Status::kBadFrame;
+    }
+    pending_ = false;
+    cv::Mat image;
     if (!capture_.retrieve(image) || image.empty()) {
-      *problem = "cannot decode " + frame->name;
+      *problem = "cannot decode " + frame->name + "; skipped";
+      frame->image.release();
       return Status::kBadFrame;
     }
     frame->image = ToPipelineImage(image);
-    return Status::kFrame;
+    *problem = shape_.Check(*frame);
+    return problem->empty() ? Status::kFrame : Status::kBadFrame;
   }
   int64_t size() const override { return size_; }
   void SkipThrough(int64_t index) override {
-    while (next_ <= index && capture_.grab()) ++next_;
+    while (next_ <= index) {
+      if (lost_pending_ > 0) {
+        --lost_pending_;
+      } else if (pending_) {
+        pending_ = false;
+      } else if (!GrabNext(&lost_pending_)) {
+        return;
+      } else {
+        pending_ = true;
+        continue;
+      }
+      ++next_;
+    }
   }
 
  private:
+  // Grabs the next decodable frame; *lost: failed grabs before it. False at the end.
+  bool GrabNext(int* lost) {
+    for (int k = 0; k <= kMaxLostFrames; ++k) {
+      if (capture_.grab()) {
+        *lost = k;
+        return true;
+      }
+    }
+    *lost = 0;
+    return false;
+  }
+
   std::string path_;
   Options options_;
   cv::VideoCapture capture_;
   int64_t size_ = -1;
-  int64_t next_ = 0;
+  int64_t next_ = 0;      // Index of the next frame Next() returns.
+  bool pending_ = false;  // A frame is grabbed and not yet returned.
+  int lost_pending_ = 0;  // Lost frames to report before the pending one.
+  StreamShape shape_;
 };
 
 bool IsImageFile(const fs::path& p) {

@@ -439,7 +439,7 @@ class MapFusion::Impl {
   void Render(const Held& frame, const FramePlacement& placement, Orthorectifier* ortho) {
     if (!sink_ || !options_.render) return;
     OrthoImage out;
-    ortho->Run(frame.data.image, placement.mosaic_from_image, &out);
+    ortho->Run(frame.data.image, placement.mosaic_from_image, &out, frame.data.image_clip);
     cv::Mat compensated;
     out.image.convertTo(compensated, out.image.type(), placement.gain, placement.offset);
     cv::Mat weight;

@@ -4,8 +4,10 @@
 #include <chrono>
 #include <cmath>
 #include <deque>
+#include <filesystem>
 #include <fstream>
 #include <iomanip>
+#include <map>
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
@@ -133,7 +135,12 @@ class Mosaicker::Impl : public MosaicSink {
         options_.fusion, camera_,
         [this](const FusionFrame& base, const FusionFrame& templ) { return Register(base, templ); },
         this);
-    if (options_.mode == TileStoreOptions::Mode::kResume) OpenStore(PixelType::kUInt16);
+    // Resuming reads the pixel type from the store; a store killed before its first publish
+    // has none yet, and is created at the first frame as a new one (TileStore::Open).
+    if (options_.mode == TileStoreOptions::Mode::kResume &&
+        std::filesystem::exists(std::filesystem::path(options_.store_path) / "manifest.json")) {
+      OpenStore(PixelType::kUInt16);
+    }
   }
 
   ~Impl() override {
@@ -189,9 +196,17 @@ class Mosaicker::Impl : public MosaicSink {
     frame.time_s = time_s;
     frame.image = image.clone();
     frame.pos_mosaic_from_image = geometry.mosaic_from_image;
+    frame.image_clip = geometry.image_clip;
+    if (!geometry.image_clip.empty()) {
+      std::lock_guard<std::mutex> lock(mu_);
+      clips_[index] = geometry.image_clip;
+    }
+    if (!geometry.warning.empty()) {
+      result.warning = "frame " + std::to_string(index) + ": " + geometry.warning;
+    }
     auto ortho = std::make_shared<OrthoImage>();
     try {
-      ortho_.Run(image, geometry.mosaic_from_image, ortho.get());
+      ortho_.Run(image, geometry.mosaic_from_image, ortho.get(), geometry.image_clip);
     } catch (const InputError& e) {
       return skip(e.problem());
     }
@@ -372,9 +387,21 @@ class Mosaicker::Impl : public MosaicSink {
         Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(camera_.width - 0.5, -0.5),
         Eigen::Vector2d(camera_.width - 0.5, camera_.height - 0.5),
         Eigen::Vector2d(-0.5, camera_.height - 0.5)};
+    std::vector<Eigen::Vector2d> clip;  // A clipped frame's footprint is its kept part's.
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      const auto found = clips_.find(placement.index);
+      if (found != clips_.end()) clip = found->second;
+    }
     for (int k = 0; k < 4; ++k) {
+      Eigen::Vector2d corner = corners[k];
+      for (const Eigen::Vector2d& p : clip) {
+        if (&p == &clip.front() || (p - corners[k]).norm() < (corner - corners[k]).norm()) {
+          corner = p;
+        }
+      }
       record.footprint_m[k] =
-          grid_.PlaneFromPixel(ApplyHomography(placement.mosaic_from_image, corners[k]));
+          grid_.PlaneFromPixel(ApplyHomography(placement.mosaic_from_image, corner));
     }
     record.pos_only = placement.pos_only;
     record.residual_px = placement.residual_px;
@@ -546,6 +573,7 @@ class Mosaicker::Impl : public MosaicSink {
   int64_t resumed_last_index_ = -1;
   Clock::time_point last_publish_ = Clock::now();
   mutable std::mutex mu_;
+  std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;      // Kept part of clipped frames.
   std::deque<std::pair<Clock::time_point, int64_t>> pending_;  // (arrival, generation)
   std::vector<double> latencies_s_;
   MosaickerSummary summary_;

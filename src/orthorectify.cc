@@ -14,8 +14,29 @@ namespace irmosaic {
 Orthorectifier::Orthorectifier(CameraModel camera, OrthoOptions options)
     : camera_(std::move(camera)), options_(options) {}
 
+namespace {
+
+// Zeroes `mask` outside the clip polygon (undistorted image px) mapped by ortho_from_image.
+void ApplyClip(const std::vector<Eigen::Vector2d>& image_clip,
+               const Eigen::Matrix3d& ortho_from_image, cv::Mat* mask) {
+  if (image_clip.empty()) return;
+  constexpr int kShift = 4;
+  std::vector<cv::Point> polygon;
+  for (const Eigen::Vector2d& p : image_clip) {
+    const Eigen::Vector2d q = ApplyHomography(ortho_from_image, p);
+    polygon.emplace_back(static_cast<int>(std::lround(q.x() * (1 << kShift))),
+                         static_cast<int>(std::lround(q.y() * (1 << kShift))));
+  }
+  cv::Mat keep(mask->size(), CV_8U, cv::Scalar(0));
+  cv::fillConvexPoly(keep, polygon.data(), static_cast<int>(polygon.size()), cv::Scalar(255),
+                     cv::LINE_8, kShift);
+  cv::bitwise_and(*mask, keep, *mask);
+}
+
+}  // namespace
+
 void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image,
-                         OrthoImage* out) {
+                         OrthoImage* out, const std::vector<Eigen::Vector2d>& image_clip) {
   if (frame.empty() || frame.channels() != 1 ||
       (frame.depth() != CV_8U && frame.depth() != CV_16U && frame.depth() != CV_32F)) {
     throw InputError({"frame", 0, 0, ""},
@@ -32,12 +53,22 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   const double w = frame.cols, h = frame.rows;
   double min_x = INFINITY, min_y = INFINITY, max_x = -INFINITY, max_y = -INFINITY;
   constexpr int kSamples = 8;
-  for (int s = 0; s <= kSamples; ++s) {
-    const double f = static_cast<double>(s) / kSamples;
-    for (const Eigen::Vector2d& raw :
-         {Eigen::Vector2d(-0.5 + f * w, -0.5), Eigen::Vector2d(-0.5 + f * w, h - 0.5),
-          Eigen::Vector2d(-0.5, -0.5 + f * h), Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
-      const Eigen::Vector3d q = mosaic_from_image * camera_.Undistort(raw).homogeneous();
+  // The outline to bound: the frame's outer edges (raw px, undistorted), or the clip polygon.
+  std::vector<Eigen::Vector2d>& outline = outline_;  // Reused: no allocation once warm.
+  outline.assign(image_clip.begin(), image_clip.end());
+  if (outline.empty()) {
+    for (int s = 0; s <= kSamples; ++s) {
+      const double f = static_cast<double>(s) / kSamples;
+      for (const Eigen::Vector2d& raw :
+           {Eigen::Vector2d(-0.5 + f * w, -0.5), Eigen::Vector2d(-0.5 + f * w, h - 0.5),
+            Eigen::Vector2d(-0.5, -0.5 + f * h), Eigen::Vector2d(w - 0.5, -0.5 + f * h)}) {
+        outline.push_back(camera_.Undistort(raw));
+      }
+    }
+  }
+  {
+    for (const Eigen::Vector2d& undistorted : outline) {
+      const Eigen::Vector3d q = mosaic_from_image * undistorted.homogeneous();
       if (q.z() <= 0.0) {
         throw InputError({"frame", 0, 0, ""}, "the frame's footprint crosses the horizon",
                          "check the pose; frames looking at the sky cannot be mapped");
@@ -115,6 +146,7 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
                           static_cast<int>(std::lround(p.y() * (1 << kShift))));
     }
     cv::fillConvexPoly(out->mask, quad.data(), 4, cv::Scalar(255), cv::LINE_8, kShift);
+    ApplyClip(image_clip, out->ortho_from_image, &out->mask);
     return;
   }
   // With distortion: ortho px -> undistorted px (homography) -> recorded px (lens model).
@@ -141,13 +173,15 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   cv::remap(frame, out->image, map_x_, map_y_, options_.interpolation, cv::BORDER_REPLICATE);
   if (full_mask_.size() != frame.size()) full_mask_ = cv::Mat(frame.size(), CV_8U, 255);
   cv::remap(full_mask_, out->mask, map_x_, map_y_, cv::INTER_NEAREST, cv::BORDER_CONSTANT, 0);
+  ApplyClip(image_clip, out->ortho_from_image, &out->mask);
 }
 
 OrthoImage Orthorectify(const cv::Mat& frame, const CameraModel& camera,
-                        const Eigen::Matrix3d& mosaic_from_image, const OrthoOptions& options) {
+                        const Eigen::Matrix3d& mosaic_from_image, const OrthoOptions& options,
+                        const std::vector<Eigen::Vector2d>& image_clip) {
   Orthorectifier worker(camera, options);
   OrthoImage out;
-  worker.Run(frame, mosaic_from_image, &out);
+  worker.Run(frame, mosaic_from_image, &out, image_clip);
   return out;
 }
 

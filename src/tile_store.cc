@@ -558,8 +558,9 @@ TileStore::~TileStore() {
   }
 }
 
-std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& options,
+std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
                                            const StoreGeoreference& georef) {
+  TileStoreOptions options = requested;
   std::string problem;
   if (!options.IsValid(&problem)) {
     throw InputError({options.path, 0, 0, "options"}, problem, "fix the option named");
@@ -578,12 +579,36 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& options,
   impl->max_levels = MaxLevelsFor(options.tile_size);
   const fs::path manifest_path = impl->root / "manifest.json";
   std::error_code error;
-  const bool exists = fs::exists(impl->root, error);
+  bool exists = fs::exists(impl->root, error);
   const bool is_store = fs::exists(manifest_path, error);
-  const bool empty_dir = exists && fs::is_directory(impl->root, error) &&
-                         fs::directory_iterator(impl->root, error) == fs::directory_iterator();
+  bool empty_dir = exists && fs::is_directory(impl->root, error) &&
+                   fs::directory_iterator(impl->root, error) == fs::directory_iterator();
 
   using Mode = TileStoreOptions::Mode;
+  // A run killed before its first publish leaves no manifest: nothing was published, so
+  // --resume and --overwrite start afresh (found by the kill -9 campaign, scripts/faults.sh).
+  // Only the skeleton of an interrupted creation qualifies: no tile, nothing foreign.
+  if (options.mode != Mode::kCreate && exists && !is_store && !empty_dir &&
+      fs::is_directory(impl->root, error)) {
+    bool skeleton = true;
+    for (const auto& entry : fs::recursive_directory_iterator(impl->root, error)) {
+      const std::string name = entry.path().filename().string();
+      if (entry.is_directory() || store::IsTemporaryName(name) ||
+          name.rfind("frames.gpkg", 0) == 0 || entry.path().extension() == ".qlr") {
+        continue;
+      }
+      skeleton = false;
+      break;
+    }
+    if (skeleton && !error) {
+      fs::remove_all(impl->root, error);
+      exists = fs::exists(impl->root, error);
+    }
+  }
+  if (options.mode == Mode::kResume && (!exists || empty_dir)) {
+    options.mode = Mode::kCreate;  // Nothing was ever published: resuming is creating.
+    impl->options.mode = Mode::kCreate;
+  }
   if (options.mode == Mode::kCreate && exists && !empty_dir) {
     throw InputError(
         {options.path, 0, 0, ""},

@@ -4,9 +4,11 @@
 #include <GeographicLib/Geocentric.hpp>
 #include <GeographicLib/Geodesic.hpp>
 #include <cmath>
+#include <opencv2/imgproc.hpp>
 
 #include "irmosaic/frame_geometry.h"
 #include "irmosaic/local_frame.h"
+#include "irmosaic/orthorectify.h"
 
 namespace irmosaic {
 namespace {
@@ -192,6 +194,84 @@ TEST(GeometryTest, AbsurdRangeIsRefusedByConfigurableLimit) {
                                                frame, MosaicGrid{1.0}, FlatGround(0.0), options);
   EXPECT_FALSE(g.ok);
   EXPECT_NE(g.problem.find("beyond the limit"), std::string::npos) << g.problem;
+}
+
+// Ground beyond max_range_m is clipped off, not the whole frame refused: the kept part is the
+// convex polygon of pixels whose rays meet the ground within the range, the homography is exact
+// on it, and the orthoimage paints only it.
+TEST(GeometryTest, FarGroundIsClippedAtTheRangeLimitWithAWarning) {
+  const LocalFrame frame(kLat0, kLon0);
+  PosRecord r;
+  r.lat_deg = kLat0;
+  r.lon_deg = kLon0;
+  r.height_m = 1000.0;
+  r.gimbal_roll_deg = 60.0;  // Ground 1.70 km to 2.47 km away across the image.
+  const CameraModel camera = DefaultInfraredCamera(3000.0);
+  const Pose pose = PoseFromRecord(r);
+  GeometryOptions options;
+  options.max_range_m = 2000.0;
+  const MosaicGrid grid{1.0};
+  const FrameGeometry g = ComputeFrameGeometry(camera, pose, frame, grid, FlatGround(0.0), options);
+  ASSERT_TRUE(g.ok) << g.problem;
+  EXPECT_NE(g.warning.find("clipped"), std::string::npos) << g.warning;
+  EXPECT_NE(g.warning.find("2000 m"), std::string::npos) << g.warning;
+  ASSERT_GE(g.image_clip.size(), 3u);
+  EXPECT_GT(g.kept_fraction, 0.3);
+  EXPECT_LT(g.kept_fraction, 0.7);
+  std::printf("clipped at %.0f m: %.1f%% kept, %zu vertices, fit rms %.4f px max %.4f px\n",
+              options.max_range_m, 100 * g.kept_fraction, g.image_clip.size(), g.fit_rms_px,
+              g.fit_max_px);
+  std::vector<cv::Point2f> contour;
+  for (const Eigen::Vector2d& p : g.image_clip) contour.emplace_back(p.x(), p.y());
+  const CameraInEcef located = LocateCamera(camera, pose);
+  int inside = 0, outside = 0;
+  double worst_px = 0.0;
+  for (int j = 0; j <= 16; ++j) {
+    for (int i = 0; i <= 20; ++i) {
+      const Eigen::Vector2d px(-0.5 + 640.0 * i / 20, -0.5 + 512.0 * j / 16);
+      const double margin = cv::pointPolygonTest(
+          contour, cv::Point2f(static_cast<float>(px.x()), static_cast<float>(px.y())), true);
+      const RayHit hit = IntersectGround(camera, located, px, FlatGround(0.0), 1e6);
+      ASSERT_TRUE(hit.ok());
+      if (margin > 2.0) {  // Kept: within the range, and placed exactly by the homography.
+        ++inside;
+        EXPECT_LE(hit.range_m, options.max_range_m) << px.transpose();
+        const Eigen::Vector2d exact =
+            grid.PixelFromPlane(frame.PlaneFromGeodetic(hit.geodetic.x(), hit.geodetic.y()));
+        worst_px = std::max(worst_px, (ApplyHomography(g.mosaic_from_image, px) - exact).norm());
+      } else if (margin < -2.0) {  // Clipped: beyond the range.
+        ++outside;
+        EXPECT_GT(hit.range_m, options.max_range_m) << px.transpose();
+      }
+    }
+  }
+  EXPECT_GT(inside, 50);
+  EXPECT_GT(outside, 50);
+  EXPECT_LT(worst_px, 0.05);  // Mosaic pixels of 1 m.
+  // The footprint lies in the kept part: its corners are within the range.
+  // (The camera is above the plane's origin: horizontal distance is the plane radius.)
+  for (const Eigen::Vector2d& corner_m : g.footprint_m) {
+    EXPECT_LT(corner_m.norm(), std::sqrt(2000.0 * 2000.0 - 1000.0 * 1000.0) + 2.0);
+  }
+  // The orthoimage paints only the kept part.
+  cv::Mat image(512, 640, CV_16U, cv::Scalar(1000));
+  const OrthoImage whole = Orthorectify(image, camera, g.mosaic_from_image);
+  const OrthoImage kept = Orthorectify(image, camera, g.mosaic_from_image, {}, g.image_clip);
+  const double kept_area = cv::countNonZero(kept.mask), whole_area = cv::countNonZero(whole.mask);
+  EXPECT_LT(kept_area, 0.8 * whole_area);
+  EXPECT_GT(kept_area, 0.2 * whole_area);
+  const Eigen::Matrix3d image_from_ortho = kept.ortho_from_image.inverse();
+  for (int y = 0; y < kept.mask.rows; y += 7) {
+    for (int x = 0; x < kept.mask.cols; x += 7) {
+      if (!kept.mask.at<uint8_t>(y, x)) continue;
+      const Eigen::Vector2d px = ApplyHomography(image_from_ortho, Eigen::Vector2d(x, y));
+      EXPECT_GT(
+          cv::pointPolygonTest(
+              contour, cv::Point2f(static_cast<float>(px.x()), static_cast<float>(px.y())), true),
+          -1.5)
+          << px.transpose();
+    }
+  }
 }
 
 TEST(GeometryTest, CrsWktIsOrthographicOnWgs84) {

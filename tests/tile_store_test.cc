@@ -645,3 +645,48 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
 
 }  // namespace
 }  // namespace irmosaic
+
+namespace irmosaic {
+namespace {
+
+// Found by the kill -9 campaign (scripts/faults.sh): a run killed before its first publish
+// left a folder with no manifest that neither --resume, --overwrite nor a new run would take.
+// Nothing was published, so --resume (and --overwrite) start afresh; anything that is not the
+// skeleton of an interrupted creation is still refused, never deleted.
+TEST(TileStoreTest, ResumeOfARunKilledBeforeItsFirstPublishStartsAfresh) {
+  const fs::path root = FreshDir("killed_early");
+  TileStoreOptions resume = Options(root / "never");  // Killed before the folder was made.
+  resume.mode = TileStoreOptions::Mode::kResume;
+  TileStore::Open(resume, Georef())->Close();
+  EXPECT_TRUE(fs::exists(root / "never" / "manifest.json"));
+
+  const fs::path skeleton = root / "skeleton";  // Killed between mkdir and the first index.
+  fs::create_directories(skeleton / "tiles" / "0");
+  std::ofstream(skeleton / "frames.gpkg") << "partial";
+  std::ofstream(skeleton / ".manifest.json.tmp123") << "{";
+  TileStoreOptions options = Options(skeleton);
+  EXPECT_THROW(TileStore::Open(options, Georef()), InputError);  // A new run still refuses.
+  options.mode = TileStoreOptions::Mode::kResume;
+  int64_t closed_generation = -1;
+  {
+    auto store = TileStore::Open(options, Georef());
+    EXPECT_EQ(store->published_generation(), 0);  // A new store: generation 0.
+    store->Close();
+    closed_generation = store->published_generation();
+  }
+  EXPECT_TRUE(fs::exists(skeleton / "manifest.json"));
+  EXPECT_EQ(TileStore::OpenReadOnly(skeleton.string())->published_generation(), closed_generation);
+
+  const fs::path foreign = root / "foreign";  // Not ours: refused and left alone.
+  fs::create_directories(foreign);
+  std::ofstream(foreign / "notes.txt") << "keep me";
+  TileStoreOptions foreign_options = Options(foreign);
+  foreign_options.mode = TileStoreOptions::Mode::kResume;
+  EXPECT_THROW(TileStore::Open(foreign_options, Georef()), InputError);
+  foreign_options.mode = TileStoreOptions::Mode::kOverwrite;
+  EXPECT_THROW(TileStore::Open(foreign_options, Georef()), InputError);
+  EXPECT_TRUE(fs::exists(foreign / "notes.txt"));
+}
+
+}  // namespace
+}  // namespace irmosaic

@@ -3,6 +3,7 @@
 #include <Eigen/Core>
 #include <array>
 #include <string>
+#include <vector>
 
 #include "irmosaic/camera.h"
 #include "irmosaic/export.h"
@@ -54,8 +55,11 @@ IRMOSAIC_EXPORT RayHit IntersectGround(const CameraModel& camera, const CameraIn
                                        const GroundModel& ground, double max_range_m);
 
 struct GeometryOptions {
-  double max_range_m = 30000.0;  // Rays longer than this are refused (absurd footprints).
-  int fit_grid = 9;              // Ray samples per image side for the homography fit.
+  // Ground farther than this from the camera is clipped off the frame, with a warning (a
+  // grazing view would otherwise paint an absurdly large footprint); a frame with too little
+  // ground within it is refused.
+  double max_range_m = 30000.0;
+  int fit_grid = 9;  // Ray samples per image side for the homography fit.
 };
 
 // One frame's place on the mosaic plane.
@@ -68,6 +72,12 @@ struct FrameGeometry {
   std::array<Eigen::Vector2d, 4> footprint_m;
   double fit_rms_px = 0.0;  // Homography fit against the exact rays, mosaic pixels.
   double fit_max_px = 0.0;
+  // When ground beyond max_range_m was clipped: the part of the frame kept, a convex polygon in
+  // undistorted image pixels (the homography is fitted on it and footprint_m lies in it);
+  // empty: the whole frame. `warning` then says so, `kept_fraction` is its share of the frame.
+  std::vector<Eigen::Vector2d> image_clip;
+  double kept_fraction = 1.0;
+  std::string warning;
 };
 
 // Correction homography of a frame: rays of a grid of pixels meet the ground exactly; the

@@ -25,14 +25,18 @@ class IRMOSAIC_EXPORT FrameSource {
     double fps = 25.0;  // Frame rate for videos and folders (time = t0 + i / fps).
     double t0_s = 0.0;  // Time of the first frame for videos and folders.
   };
-  // Throws InputError naming the path and the fix (missing, unsupported, empty).
+  // Throws InputError naming the path and the fix (missing, unsupported, empty, a video with
+  // no decodable frame).
   static std::unique_ptr<FrameSource> Open(const std::string& path, const Options& options);
   static std::unique_ptr<FrameSource> Open(const std::string& path) { return Open(path, {}); }
   virtual ~FrameSource() = default;
 
   enum class Status { kFrame, kEnd, kBadFrame };
-  // Next frame. kBadFrame: this one could not be read (`frame->name` and `*problem` say why);
-  // the source moves on, so the caller can skip it and continue.
+  // Next frame. kBadFrame: this one could not be read, or its size or bit depth differs from
+  // the first frame's (`frame->index`, `frame->name` and `*problem` say which and why); the
+  // source moves on, so the caller can skip it and continue. kEnd with a non-empty `*problem`:
+  // the stream ended early (a video shorter than its header says), a warning to show.
+  // `*problem` is cleared otherwise.
   virtual Status Next(SourceFrame* frame, std::string* problem) = 0;
   // Total frames if known, else -1.
   virtual int64_t size() const = 0;

@@ -51,6 +51,8 @@ struct FusionFrame {
   cv::Mat image;  // As recorded (CV_8U, CV_16U or CV_32F).
   Eigen::Matrix3d pos_mosaic_from_image = Eigen::Matrix3d::Identity();
   OrthoImage pos_ortho;  // The frame orthorectified by its POS homography.
+  // The part of the frame to paint (FrameGeometry::image_clip); empty: all of it.
+  std::vector<Eigen::Vector2d> image_clip;
   // Square-root information of the POS placement of the corners and centre (see
   // PosPriorSqrtInformation); zero: isotropic FusionOptions::pos_sigma_px.
   Eigen::Matrix<double, 10, 10> prior_sqrt_information = Eigen::Matrix<double, 10, 10>::Zero();

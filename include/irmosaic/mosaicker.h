@@ -35,7 +35,7 @@ struct MosaickerOptions {
   double pos_position_sigma_m = 2.0;    // POS accuracy (1 sigma) per axis.
   double pos_attitude_sigma_deg = 0.3;  // POS accuracy (1 sigma) per angle.
   double search_radius_px = 64.0;       // SCD search around the POS prediction.
-  double max_range_m = 30000.0;         // Rays longer than this: frame refused.
+  double max_range_m = 30000.0;         // Ground farther than this is clipped off a frame.
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
   // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
   double overview_interval_s = 2.0;
@@ -52,6 +52,7 @@ struct PushResult {
   enum class Status { kPlaced, kSkipped };
   Status status = Status::kSkipped;
   std::string reason;        // Why skipped (no POS, ray above the horizon, bad image...).
+  std::string warning;       // Placed with a caveat (ground beyond max_range_m clipped off).
   FramePlacement placement;  // Valid when placed.
   bool placed() const { return status == Status::kPlaced; }
 };

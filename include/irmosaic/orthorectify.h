@@ -3,6 +3,7 @@
 #include <Eigen/Core>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
+#include <vector>
 
 #include "irmosaic/camera.h"
 #include "irmosaic/export.h"
@@ -27,22 +28,27 @@ struct OrthoOptions {
 // Warps `frame` (CV_8U, CV_16U or CV_32F, one channel) with the correction homography
 // `mosaic_from_image` (undistorted image px -> mosaic px). Lens distortion is undone in the
 // same resampling. Throws InputError for an empty or multi-channel frame or an absurd size.
+// `image_clip` (undistorted image px, convex; FrameGeometry::image_clip): only that part of the
+// frame is warped and unmasked; empty: the whole frame.
 IRMOSAIC_EXPORT OrthoImage Orthorectify(const cv::Mat& frame, const CameraModel& camera,
                                         const Eigen::Matrix3d& mosaic_from_image,
-                                        const OrthoOptions& options = {});
+                                        const OrthoOptions& options = {},
+                                        const std::vector<Eigen::Vector2d>& image_clip = {});
 
 // Reusable scratch space so the hot path allocates nothing once warm.
 class IRMOSAIC_EXPORT Orthorectifier {
  public:
   explicit Orthorectifier(CameraModel camera, OrthoOptions options = {});
   // As the free function; `out`'s buffers are reused when sizes allow.
-  void Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image, OrthoImage* out);
+  void Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image, OrthoImage* out,
+           const std::vector<Eigen::Vector2d>& image_clip = {});
 
  private:
   CameraModel camera_;
   OrthoOptions options_;
   cv::Mat full_mask_;
   cv::Mat map_x_, map_y_;
+  std::vector<Eigen::Vector2d> outline_;
 };
 
 }  // namespace irmosaic
