@@ -250,8 +250,9 @@ def check_inline_commands(cli, source, files):
                 checked += 1
             elif words and re.match(r"^build/(bench|tests|cli|gdalplugins|python)/\S+$", words[0]):
                 kind, name = words[0].split("/")[1], words[0].split("/", 2)[2]
-                if kind in ("bench", "tests"):  # one program per bench/NAME.cc, tests/NAME.cc
-                    exists = os.path.exists(os.path.join(source, kind, name + ".cc"))
+                if kind in ("bench", "tests"):  # one program per bench/[DIR/]NAME.cc
+                    exists = bool(glob.glob(os.path.join(source, kind, "**", name + ".cc"),
+                                            recursive=True))
                 else:
                     exists = bool(glob.glob(os.path.join(os.path.dirname(cli), "..", kind, name)))
                 if not exists:
