@@ -91,12 +91,12 @@ struct FusionOptions {
   // first (0: no limit); the final solve re-renders every frame that moved. Bounds the
   // painting and tile writing a solve causes (each re-render rewrites a few tiles).
   int max_rerenders_per_solve = 16;
-  bool optimize = true;                 // Run the global optimization thread.
-  bool compensate_gain = true;          // Per-frame gain and offset from the overlaps.
-  double gain_prior_sigma = 0.5;        // Keeps the global level: gain ~ 1 +- this.
-  int feather_px = 24;                  // Seam blending ramp width.
-  int tie_patch_radius_px = 3;          // Radiometric samples: mean of a (2r+1)^2 patch.
-  bool render = true;                   // Paint into the sink (off for geometry-only runs).
+  bool optimize = true;           // Run the global optimization thread.
+  bool compensate_gain = true;    // Per-frame gain and offset from the overlaps.
+  double gain_prior_sigma = 0.5;  // Keeps the global level: gain ~ 1 +- this.
+  int feather_px = 24;            // Seam blending ramp width.
+  int tie_patch_radius_px = 3;    // Radiometric samples: mean of a (2r+1)^2 patch.
+  bool render = true;             // Paint into the sink (off for geometry-only runs).
   // Ceres linear solver and sparse library by their Ceres names (docs/fusion.md has the
   // measured choice).
   std::string linear_solver = "SPARSE_NORMAL_CHOLESKY";

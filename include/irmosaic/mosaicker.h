@@ -39,8 +39,8 @@ struct MosaickerOptions {
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
   // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
   double overview_interval_s = 2.0;
-  int tile_size = 512;                  // Store tile side, pixels: a multiple of 16 in [64, 8192].
-  std::string compression = "ZSTD";     // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
+  int tile_size = 512;               // Store tile side, pixels: a multiple of 16 in [64, 8192].
+  std::string compression = "ZSTD";  // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.
