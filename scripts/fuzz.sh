@@ -18,25 +18,35 @@ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 cmake --build "$build" -j2 --target "${targets[@]/%/_fuzzer}"
 
 mkdir -p "$build/artifacts"
-status=0
-for t in "${targets[@]}"; do
-  # Fuzz into a scratch corpus seeded from the committed one, so new inputs do not dirty git.
-  work="$build/corpus/$t"
+# One target: fuzz into a scratch corpus seeded from the committed one, so new inputs do not dirty
+# git; prints its figures (for docs/reliability.md: executions, coverage, corpus size) or its
+# failure, and exits non-zero on a crash, leak, hang or sanitizer report.
+fuzz_one() {
+  local t=$1
+  local work="$build/corpus/$t" log="$build/$t.log"
   mkdir -p "$work"
-  log="$build/$t.log"
-  echo "fuzz: $t for ${seconds}s"
   if ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
     "$build/fuzz/${t}_fuzzer" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 \
     -max_len=65536 -print_final_stats=1 -artifact_prefix="$build/artifacts/${t}-" \
     "$work" "fuzz/corpus/$t" >"$log" 2>&1; then
-    # Figures for docs/reliability.md: executions, coverage, corpus size.
-    grep -E "stat::number_of_executed_units|stat::average_exec_per_sec|stat::peak_rss_mb" "$log" |
-      tr '\n' ' '
-    grep -E "^#[0-9]+.*(DONE|pulse|NEW)" "$log" | tail -1 || true
+    echo "fuzz: $t for ${seconds}s: $(grep -E "stat::number_of_executed_units|stat::average_exec_per_sec|stat::peak_rss_mb" "$log" | tr '\n' ' ')$(grep -E "^#[0-9]+.*(DONE|pulse|NEW)" "$log" | tail -1 || true)"
   else
     echo "fuzz: $t FAILED (log: $log)"
     grep -E "ERROR|SUMMARY|Test unit written" "$log" | head -10 || true
-    status=1
+    return 1
+  fi
+}
+
+# Two targets at a time (each fuzzer is one single-threaded process; the machine has 2 cores).
+status=0
+pids=()
+for t in "${targets[@]}"; do
+  fuzz_one "$t" &
+  pids+=($!)
+  if ((${#pids[@]} == 2)); then
+    for p in "${pids[@]}"; do wait "$p" || status=1; done
+    pids=()
   fi
 done
+for p in "${pids[@]}"; do wait "$p" || status=1; done
 exit "$status"

@@ -106,7 +106,9 @@ class VideoSource : public FrameSource {
   static constexpr int kMaxLostFrames = 25;
 
   VideoSource(const std::string& path, const Options& options) : path_(path), options_(options) {
-    capture_.open(path);
+    // FFmpeg only: when it cannot read a file, OpenCV's other backends are no help for a file
+    // (GStreamer, and gphoto2, which scans the USB bus for cameras and leaks what it found).
+    capture_.open(path, cv::CAP_FFMPEG);
     if (!capture_.isOpened()) {
       throw InputError({path, 0, 0, ""},
                        "OpenCV cannot open this video (unsupported codec or "

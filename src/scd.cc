@@ -4,6 +4,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <limits>
 #include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
@@ -66,8 +68,14 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
                                 two * (cv::v_load(a + x) + cv::v_load(c + x) +
                                        cv::v_load(b + x - 1) + cv::v_load(b + x + 1)) +
                                 four * cv::v_load(b + x);
-      const cv::v_float32x4 w = cv::v_select(
-          cv::v_cvt_f32(cv::v_reinterpret_as_s32(cv::v_load_expand_q(m + x))) != zero, one, zero);
+      // OpenCV's v_load_expand_q reads its 4 bytes through an int pointer, which UBSan rightly
+      // calls a misaligned load at m + x; handing it an aligned copy keeps the code defined.
+      uint32_t mask4;
+      std::memcpy(&mask4, m + x, sizeof mask4);
+      const cv::v_float32x4 w =
+          cv::v_select(cv::v_cvt_f32(cv::v_reinterpret_as_s32(
+                           cv::v_load_expand_q(reinterpret_cast<const uchar*>(&mask4)))) != zero,
+                       one, zero);
       vsum += w * cv::v_abs(l);
       vcount += w;
     }
