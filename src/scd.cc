@@ -154,6 +154,9 @@ bool ScdOptions::IsValid(std::string* error) const {
   if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
     return fail("coarse_gradient_sigma_px must be in [0, 20]");
   }
+  if (fine_template_step != 1 && fine_template_step != 2) {
+    return fail("fine_template_step must be 1 or 2");
+  }
   if (!(subpixel_refit_max_px >= 0.0 && subpixel_refit_max_px <= 2.0)) {
     return fail("subpixel_refit_max_px must be in [0, 2]");
   }
@@ -180,23 +183,26 @@ cv::Mat CubicWeights(double t) {
   return (cv::Mat_<float>(4, 1) << w(t + 1.0), w(t), w(1.0 - t), w(2.0 - t));
 }
 
-// out(p) = src(p + r.tl() + shift) for p in r.size(): the separable cubic (Keys) of
-// CubicShift on the rectangle r of src only, reads clamped to src, for |shift| < 2 px. Two
-// passes of four taps without OpenCV's per-call filter set-up (5 shifts per pair).
-void CubicShiftRect(const cv::Mat& src, const cv::Rect& r, const Eigen::Vector2d& shift,
-                    cv::Mat* out, cv::Mat* tmp) {
+// out(k) = src(origin + step k + shift) for k in [0, count): the separable cubic (Keys) of
+// CubicShift at every step-th pixel of src only (step 1 or 2), reads clamped to src, for
+// |shift| < 2 px. Two passes of four taps without OpenCV's per-call filter set-up (5 shifts per
+// pair); the vertical pass runs on the output rows only.
+void CubicShiftSampled(const cv::Mat& src, cv::Point origin, cv::Size count, int step,
+                       const Eigen::Vector2d& shift, cv::Mat* out, cv::Mat* tmp) {
   const double fx = std::floor(shift.x()), fy = std::floor(shift.y());
   const cv::Mat kx = CubicWeights(shift.x() - fx), ky = CubicWeights(shift.y() - fy);
   const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
   const float wy[4] = {ky.at<float>(0), ky.at<float>(1), ky.at<float>(2), ky.at<float>(3)};
-  const int c0 = r.x + static_cast<int>(fx) - 1, r0 = r.y + static_cast<int>(fy) - 1;
-  const int tw = r.width + 3;
-  tmp->create(r.height, tw, CV_32F);
-  out->create(r.size(), CV_32F);
+  const int c0 = origin.x + static_cast<int>(fx) - 1, r0 = origin.y + static_cast<int>(fy) - 1;
+  const int tw = step * (count.width - 1) + 4;
+  tmp->create(count.height, tw, CV_32F);
+  out->create(count, CV_32F);
   const int j_lo = std::clamp(-c0, 0, tw), j_hi = std::clamp(src.cols - c0, j_lo, tw);
-  for (int y = 0; y < r.height; ++y) {
+  for (int y = 0; y < count.height; ++y) {
     const float* s[4];
-    for (int k = 0; k < 4; ++k) s[k] = src.ptr<float>(std::clamp(r0 + y + k, 0, src.rows - 1));
+    for (int k = 0; k < 4; ++k) {
+      s[k] = src.ptr<float>(std::clamp(r0 + step * y + k, 0, src.rows - 1));
+    }
     float* t = tmp->ptr<float>(y);
     auto scalar = [&](int j) {
       const int col = std::clamp(c0 + j, 0, src.cols - 1);
@@ -219,13 +225,25 @@ void CubicShiftRect(const cv::Mat& src, const cv::Rect& r, const Eigen::Vector2d
 #if CV_SIMD128
     const cv::v_float32x4 x0 = cv::v_setall_f32(wx[0]), x1 = cv::v_setall_f32(wx[1]);
     const cv::v_float32x4 x2 = cv::v_setall_f32(wx[2]), x3 = cv::v_setall_f32(wx[3]);
-    for (; x + 4 <= r.width; x += 4) {
-      cv::v_store(o + x, x0 * cv::v_load(t + x) + x1 * cv::v_load(t + x + 1) +
-                             x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
+    if (step == 1) {
+      for (; x + 4 <= count.width; x += 4) {
+        cv::v_store(o + x, x0 * cv::v_load(t + x) + x1 * cv::v_load(t + x + 1) +
+                               x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
+      }
+    } else if (step == 2) {
+      // Taps 2x + 0..3 of four outputs from two de-interleaved loads; the last reads t[2x + 9],
+      // inside tw = 2 count + 2 while x + 4 <= count.
+      for (; x + 4 <= count.width; x += 4) {
+        cv::v_float32x4 e0, o0, e2, o2;
+        cv::v_load_deinterleave(t + 2 * x, e0, o0);
+        cv::v_load_deinterleave(t + 2 * x + 2, e2, o2);
+        cv::v_store(o + x, x0 * e0 + x1 * o0 + x2 * e2 + x3 * o2);
+      }
     }
 #endif
-    for (; x < r.width; ++x) {
-      o[x] = wx[0] * t[x] + wx[1] * t[x + 1] + wx[2] * t[x + 2] + wx[3] * t[x + 3];
+    for (; x < count.width; ++x) {
+      const float* tx = t + step * x;
+      o[x] = wx[0] * tx[0] + wx[1] * tx[1] + wx[2] * tx[2] + wx[3] * tx[3];
     }
   }
 }
@@ -275,9 +293,30 @@ void ErodeSquare(const cv::Mat& mask, int r, cv::Mat* tmp, cv::Mat* out,
   }
 }
 
-// gx, gy = 3x3 Sobel of `src` on the rectangle r (both in one pass); reads outside r use src's
-// real neighbours, clamped at src's edge.
-void SobelXY(const cv::Mat& src, const cv::Rect& r, cv::Mat* gx, cv::Mat* gy) {
+// gx, gy = 3x3 Sobel of `src` on every step-th pixel of the rectangle r (both in one pass);
+// reads outside r use src's real neighbours, clamped at src's edge.
+void SobelXY(const cv::Mat& src, const cv::Rect& r, int step, cv::Mat* gx, cv::Mat* gy) {
+  if (step > 1) {
+    // The template of the fine level: a quarter of the samples, not worth a vector path.
+    const cv::Size n((r.width + step - 1) / step, (r.height + step - 1) / step);
+    gx->create(n, CV_32F);
+    gy->create(n, CV_32F);
+    for (int j = 0; j < n.height; ++j) {
+      const int sy = r.y + step * j;
+      const float* a = src.ptr<float>(std::max(0, sy - 1));
+      const float* b = src.ptr<float>(sy);
+      const float* c = src.ptr<float>(std::min(src.rows - 1, sy + 1));
+      float* ox = gx->ptr<float>(j);
+      float* oy = gy->ptr<float>(j);
+      for (int i = 0; i < n.width; ++i) {
+        const int x = r.x + step * i;
+        const int l = std::max(x - 1, 0), rr = std::min(x + 1, src.cols - 1);
+        ox[i] = (a[rr] - a[l]) + 2.0f * (b[rr] - b[l]) + (c[rr] - c[l]);
+        oy[i] = (c[l] + 2.0f * c[x] + c[rr]) - (a[l] + 2.0f * a[x] + a[rr]);
+      }
+    }
+    return;
+  }
   gx->create(r.size(), CV_32F);
   gy->create(r.size(), CV_32F);
   const int x_lo = std::max(0, 1 - r.x), x_hi = std::min(r.width, src.cols - 1 - r.x);
@@ -311,10 +350,11 @@ void SobelXY(const cv::Mat& src, const cv::Rect& r, cv::Mat* gx, cv::Mat* gy) {
   }
 }
 
-// Sums over matching rectangles of two fields' planes: num = sum tc bc + ts bs,
-// den = sum td bd. One pass, four lanes; rows summed in double.
+// Sums over two fields' planes: num = sum tc bc + ts bs, den = sum td bd, over the template
+// samples in_t, sample (x, y) of which meets base plane element b0 + step (x, y) (step 1 or 2).
+// One pass, four lanes; rows summed in double.
 void FieldSums(const cv::Mat& tc, const cv::Mat& ts, const cv::Mat& td, const cv::Mat& bc,
-               const cv::Mat& bs, const cv::Mat& bd, const cv::Rect& in_t, const cv::Rect& in_b,
+               const cv::Mat& bs, const cv::Mat& bd, const cv::Rect& in_t, cv::Point b0, int step,
                double* num, double* den) {
   double n = 0.0, d = 0.0;
   const int w = in_t.width;
@@ -322,29 +362,64 @@ void FieldSums(const cv::Mat& tc, const cv::Mat& ts, const cv::Mat& td, const cv
     const float* a_c = tc.ptr<float>(in_t.y + y) + in_t.x;
     const float* a_s = ts.ptr<float>(in_t.y + y) + in_t.x;
     const float* a_d = td.ptr<float>(in_t.y + y) + in_t.x;
-    const float* b_c = bc.ptr<float>(in_b.y + y) + in_b.x;
-    const float* b_s = bs.ptr<float>(in_b.y + y) + in_b.x;
-    const float* b_d = bd.ptr<float>(in_b.y + y) + in_b.x;
+    const float* b_c = bc.ptr<float>(b0.y + step * y) + b0.x;
+    const float* b_s = bs.ptr<float>(b0.y + step * y) + b0.x;
+    const float* b_d = bd.ptr<float>(b0.y + step * y) + b0.x;
     float row_n = 0.0f, row_d = 0.0f;
     int x = 0;
 #if CV_SIMD128
     cv::v_float32x4 vn = cv::v_setzero_f32(), vd = cv::v_setzero_f32();
-    for (; x + 4 <= w; x += 4) {
-      vn += cv::v_load(a_c + x) * cv::v_load(b_c + x) + cv::v_load(a_s + x) * cv::v_load(b_s + x);
-      vd += cv::v_load(a_d + x) * cv::v_load(b_d + x);
+    if (step == 1) {
+      for (; x + 4 <= w; x += 4) {
+        vn += cv::v_load(a_c + x) * cv::v_load(b_c + x) + cv::v_load(a_s + x) * cv::v_load(b_s + x);
+        vd += cv::v_load(a_d + x) * cv::v_load(b_d + x);
+      }
+    } else if (step == 2) {
+      // De-interleaved loads read base elements 2x .. 2x + 7: stay inside the base row.
+      const int fit = (bc.cols - b0.x) / 2 - 3;
+      cv::v_float32x4 bce, bse, bde, odd;
+      for (; x + 4 <= std::min(w, fit); x += 4) {
+        cv::v_load_deinterleave(b_c + 2 * x, bce, odd);
+        cv::v_load_deinterleave(b_s + 2 * x, bse, odd);
+        cv::v_load_deinterleave(b_d + 2 * x, bde, odd);
+        vn += cv::v_load(a_c + x) * bce + cv::v_load(a_s + x) * bse;
+        vd += cv::v_load(a_d + x) * bde;
+      }
     }
     row_n = cv::v_reduce_sum(vn);
     row_d = cv::v_reduce_sum(vd);
 #endif
     for (; x < w; ++x) {
-      row_n += a_c[x] * b_c[x] + a_s[x] * b_s[x];
-      row_d += a_d[x] * b_d[x];
+      const int bx = step * x;
+      row_n += a_c[x] * b_c[bx] + a_s[x] * b_s[bx];
+      row_d += a_d[x] * b_d[bx];
     }
     n += row_n;
     d += row_d;
   }
   *num = n;
   *den = d;
+}
+
+// Template samples first .. first + count - 1 of a field sampled at `step` from t_origin meet
+// base plane elements b_first + step * (i - first) of a full-rate field of b_size elements from
+// b_origin, at `offset` (one axis; count 0 when none does).
+struct AxisOverlap {
+  int first = 0, count = 0, b_first = 0;
+};
+AxisOverlap OverlapOnAxis(int t_origin, int t_samples, int step, int b_origin, int b_size,
+                          int offset) {
+  // Template sample i is base element d + step i.
+  const int d = t_origin + offset - b_origin;
+  auto floor_div = [step](int a) { return a >= 0 ? a / step : -((-a + step - 1) / step); };
+  const int lo = std::max(0, -floor_div(d));  // ceil(-d / step)
+  const int hi = std::min(t_samples - 1, floor_div(b_size - 1 - d));
+  AxisOverlap o;
+  if (hi < lo) return o;
+  o.first = lo;
+  o.count = hi - lo + 1;
+  o.b_first = d + step * lo;
+  return o;
 }
 
 // Reduces image and mask by an integer factor (pixel i covers [f i, f i + f)); a reduced pixel
@@ -447,7 +522,7 @@ ScdMatcher::ScdMatcher(ScdOptions options) : options_(options) {
 
 void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
                               const cv::Rect& roi, Scratch* scratch, Field* out,
-                              double* noise_std_io, Field* unit) {
+                              double* noise_std_io, Field* unit, int step) {
   cv::Mat& work_f32 = scratch->work_f32;
   cv::Mat& work_mask = scratch->work_mask;
   cv::Mat& blurred = scratch->blurred;
@@ -507,18 +582,29 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
     cv::sepFilter2D(work_f32, blurred, CV_32F, filter.gauss, filter.gauss, cv::Point(-1, -1), 0.0,
                     cv::BORDER_REFLECT);
   }
-  SobelXY(blurred, inner, &gx_all, &gy_all);
+  SobelXY(blurred, inner, step, &gx_all, &gy_all);
 
   const float floor =
       static_cast<float>(options_.noise_floor_sigmas * noise_std * filter.noise_gain);
   out->region = roi;
+  out->step = step;
   out->floor_sq = floor * floor;
-  work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
-  const double valid_px = cv::countNonZero(work_mask(inner));
+  if (step == 1) {
+    work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
+  } else {
+    out->valid.create(gx_all.size(), CV_32F);
+    for (int j = 0; j < gx_all.rows; ++j) {
+      const uint8_t* m = work_mask.ptr<uint8_t>(inner.y + step * j) + inner.x;
+      float* v = out->valid.ptr<float>(j);
+      for (int i = 0; i < gx_all.cols; ++i) v[i] = m[step * i] ? 1.0f : 0.0f;
+    }
+  }
+  const double valid_px = cv::countNonZero(out->valid);
   out->valid_px = valid_px;
   Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
   if (unit) {
     unit->region = roi;
+    unit->step = step;
     unit->floor_sq = out->floor_sq;
     unit->valid = out->valid;  // Shared: Normalise does not write it.
     unit->valid_px = valid_px;
@@ -528,19 +614,21 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
 
 void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double weight_cap,
                            Field* out) {
-  const cv::Size size = out->region.size();
+  const cv::Size size = gx_all.size();  // the field's planes (region sampled at its step)
   const float floor_sq = out->floor_sq;
   // Weighting w = min(cap, m / median) enters as inv = w / m = min(cap / m, 1 / median).
   const bool weighted = weight_cap > 0.0;
   float cap = 1.0f, inv_median = std::numeric_limits<float>::infinity();  // w = 1
   if (weighted) {
-    // Median magnitude of the valid pixels, sampled on every fourth row and column.
+    // Median magnitude of the valid pixels, sampled on every fourth row and column of the
+    // image (the same pixels at any step).
     magnitudes_.clear();
-    for (int y = 0; y < size.height; y += 4) {
+    const int every = std::max(1, 4 / out->step);
+    for (int y = 0; y < size.height; y += every) {
       const float* gx = gx_all.ptr<float>(y);
       const float* gy = gy_all.ptr<float>(y);
       const float* v = out->valid.ptr<float>(y);
-      for (int x = 0; x < size.width; x += 4) {
+      for (int x = 0; x < size.width; x += every) {
         if (v[x] != 0.0f) magnitudes_.push_back(gx[x] * gx[x] + gy[x] * gy[x]);
       }
     }
@@ -790,15 +878,16 @@ ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& bas
 
 bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point offset,
                           double* criterion, double* scd) const {
-  // Overlap in template pixels of the two fields.
-  const cv::Rect& t = tfield.region;
-  const cv::Rect both = t & (bfield.region - offset);
-  if (both.empty()) return false;
-  const cv::Rect in_t = both - t.tl();
-  const cv::Rect in_b = both + offset - bfield.region.tl();
+  // Template samples over the base field, and the base element of the first.
+  const AxisOverlap ox = OverlapOnAxis(tfield.region.x, tfield.cos_w.cols, tfield.step,
+                                       bfield.region.x, bfield.cos_w.cols, offset.x);
+  const AxisOverlap oy = OverlapOnAxis(tfield.region.y, tfield.cos_w.rows, tfield.step,
+                                       bfield.region.y, bfield.cos_w.rows, offset.y);
+  if (ox.count == 0 || oy.count == 0) return false;
   double num = 0.0, den = 0.0;
   FieldSums(tfield.cos_w, tfield.sin_w, tfield.den_w, bfield.cos_w, bfield.sin_w, bfield.den_w,
-            in_t, in_b, &num, &den);
+            cv::Rect(ox.first, oy.first, ox.count, oy.count), cv::Point(ox.b_first, oy.b_first),
+            tfield.step, &num, &den);
   if (!(den >= 0.5)) return false;
   *scd = std::clamp(num / den, -1.0, 1.0);
   *criterion =
@@ -812,39 +901,50 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
   const Field& base = fine_scratch_.base_field;
   const Field& templ =
       options_.magnitude_weight_cap > 0.0 ? fine_scratch_.templ_unit : fine_scratch_.templ_field;
-  const cv::Rect both = templ.region & (base.region - offset);
-  if (both.empty()) return kNone;
-  const cv::Rect in_t = both - templ.region.tl();
-  const cv::Rect in_b = both + offset - base.region.tl();
-  // shifted(x) = gradient(x + shift) on the overlap only (gx, gy cover base.region); reads past
-  // the gradients' edge are clamped, and reach at most 2 px in, where Refine's margin keeps the
-  // overlap out.
-  CubicShiftRect(fine_scratch_.gx, in_b, shift, &shifted_gx_, &shift_tmp_);
-  CubicShiftRect(fine_scratch_.gy, in_b, shift, &shifted_gy_, &shift_tmp_);
+  const int step = templ.step;
+  const AxisOverlap ox = OverlapOnAxis(templ.region.x, templ.cos_w.cols, step, base.region.x,
+                                       base.valid.cols, offset.x);
+  const AxisOverlap oy = OverlapOnAxis(templ.region.y, templ.cos_w.rows, step, base.region.y,
+                                       base.valid.rows, offset.y);
+  if (ox.count == 0 || oy.count == 0) return kNone;
+  const cv::Rect in_t(ox.first, oy.first, ox.count, oy.count);
+  const cv::Point b0(ox.b_first, oy.b_first);
+  // shifted(k) = gradient(b0 + step k + shift) at the template's samples only (gx, gy cover
+  // base.region); reads past the gradients' edge are clamped, and reach at most 2 px in, where
+  // Refine's margin keeps the overlap out.
+  CubicShiftSampled(fine_scratch_.gx, b0, in_t.size(), step, shift, &shifted_gx_, &shift_tmp_);
+  CubicShiftSampled(fine_scratch_.gy, b0, in_t.size(), step, shift, &shifted_gy_, &shift_tmp_);
   // Unit vectors of the shifted gradients (Normalise without weighting) dotted with the
   // template's on the fly: num = sum t . b / |b| over oriented base pixels.
   const float floor_sq = base.floor_sq;
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
+  // De-interleaved loads of the base validity (step 2) read elements 2x .. 2x + 7.
+  const int simd_width =
+      step == 1 ? in_t.width : std::min(in_t.width, (base.valid.cols - b0.x) / 2 - 3);
   double num = 0.0, den = 0.0;
-  for (int y = 0; y < both.height; ++y) {
+  for (int y = 0; y < in_t.height; ++y) {
     const float* tc = templ.cos_w.ptr<float>(in_t.y + y) + in_t.x;
     const float* ts = templ.sin_w.ptr<float>(in_t.y + y) + in_t.x;
     const float* td = templ.den_w.ptr<float>(in_t.y + y) + in_t.x;
-    const float* v = base.valid.ptr<float>(in_b.y + y) + in_b.x;
+    const float* v = base.valid.ptr<float>(b0.y + step * y) + b0.x;
     const float* gx = shifted_gx_.ptr<float>(y);
     const float* gy = shifted_gy_.ptr<float>(y);
     float row_n = 0.0f, row_d = 0.0f;
     int x = 0;
 #if CV_SIMD128
-    if (!soft) {
+    if (!soft && step <= 2) {
       const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
       const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
       const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
-      cv::v_float32x4 vn = zero, vd = zero;
-      for (; x + 4 <= both.width; x += 4) {
+      cv::v_float32x4 vn = zero, vd = zero, valid, odd;
+      for (; x + 4 <= simd_width; x += 4) {
         const cv::v_float32x4 bx = cv::v_load(gx + x), by = cv::v_load(gy + x);
-        const cv::v_float32x4 valid = cv::v_load(v + x);
+        if (step == 1) {
+          valid = cv::v_load(v + x);
+        } else {
+          cv::v_load_deinterleave(v + 2 * x, valid, odd);
+        }
         const cv::v_float32x4 m2 = bx * bx + by * by;
         const cv::v_float32x4 keep = (valid != zero) & (m2 > floor4) & (m2 > zero);
         const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
@@ -855,15 +955,16 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
       row_d = cv::v_reduce_sum(vd);
     }
 #endif
-    for (; x < both.width; ++x) {
+    for (; x < in_t.width; ++x) {
       const float bx = gx[x], by = gy[x];
-      const bool is_valid = v[x] != 0.0f;
+      const float vx = v[step * x];
+      const bool is_valid = vx != 0.0f;
       const float m2 = bx * bx + by * by;
       const bool oriented = is_valid && m2 > floor_sq && m2 > 0.0f;
       float inv = oriented ? 1.0f / std::sqrt(m2) : 0.0f;
       if (soft && is_valid) inv = std::sqrt(m2) / (m2 + floor_sq + 1e-30f);
       row_n += (tc[x] * bx + ts[x] * by) * inv;
-      row_d += td[x] * (mask_out_flat ? (oriented ? 1.0f : 0.0f) : v[x]);
+      row_d += td[x] * (mask_out_flat ? (oriented ? 1.0f : 0.0f) : vx);
     }
     num += row_n;
     den += row_d;
@@ -907,7 +1008,8 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   double templ_noise = -1.0, base_noise = -1.0;
   const bool weighted = options_.magnitude_weight_cap > 0.0;
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
-               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
+               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr,
+               options_.fine_template_step);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
                &base_noise);
 
