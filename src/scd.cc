@@ -87,6 +87,15 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
   return count > 0 ? std::sqrt(CV_PI / 2.0) / 6.0 * sum / static_cast<double>(count) : 0.0;
 }
 
+// Smallest DFT length >= n that is a multiple of 8 and 2-3-5-smooth: OpenCV's DFT is much
+// slower on odd lengths (measured, one thread: 135x135 103 us, 144x144 71 us; 125: 72 us,
+// 128: 48 us), so a little more length is cheaper than cv::getOptimalDFTSize's smallest one.
+int FastDftSize(int n) {
+  int m = (std::max(n, 8) + 7) / 8 * 8;
+  while (cv::getOptimalDFTSize(m) != m) m += 8;
+  return m;
+}
+
 // Sub-pixel position of a peak from its two neighbours (c the peak value); in [-0.5, 0.5].
 double ParabolaDelta(double left, double centre, double right) {
   const double curvature = left - 2.0 * centre + right;
@@ -772,10 +781,8 @@ ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& bas
   // c(j) = sum_p t(p) b'(p + j), j = 0..n-1, with the base shifted right by d so that j = 0 is
   // offset (u0, v0); the FFT size leaves no wrap-around for those j.
   const int dx = base_roi.x - (templ_roi.x + u0), dy = base_roi.y - (templ_roi.y + v0);
-  const int fft_w =
-      cv::getOptimalDFTSize(std::max({2, templ_roi.width + nu - 1, dx + base_roi.width}));
-  const int fft_h =
-      cv::getOptimalDFTSize(std::max(templ_roi.height + nv - 1, dy + base_roi.height));
+  const int fft_w = FastDftSize(std::max({2, templ_roi.width + nu - 1, dx + base_roi.width}));
+  const int fft_h = FastDftSize(std::max(templ_roi.height + nv - 1, dy + base_roi.height));
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const int n_fields = mask_out_flat ? 4 : 3;
   auto transform = [&](const Field& f, const cv::Rect& place, cv::Mat* spectra) {
