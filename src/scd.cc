@@ -87,11 +87,18 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
   return count > 0 ? std::sqrt(CV_PI / 2.0) / 6.0 * sum / static_cast<double>(count) : 0.0;
 }
 
-// Smallest DFT length >= n that is a multiple of 8 and 2-3-5-smooth: OpenCV's DFT is much
-// slower on odd lengths (measured, one thread: 135x135 103 us, 144x144 71 us; 125: 72 us,
-// 128: 48 us), so a little more length is cheaper than cv::getOptimalDFTSize's smallest one.
+// DFT length >= n that OpenCV transforms fastest: among the 2-3-5-smooth lengths some are much
+// slower than a longer one (measured, one thread, OpenCV 4.6, n x 120 and 120 x n transforms:
+// 90: 78 us, 96: 73; 120: 97, 128: 97; 135: 148, 144: 116), so the table keeps only lengths
+// that no longer one beats; past it, multiples of 8 (odd lengths were the slow ones).
 int FastDftSize(int n) {
-  int m = (std::max(n, 8) + 7) / 8 * 8;
+  static constexpr int kFast[] = {32,  36,  40,  48,  50,  54,  64,  72,  80,  96,  100, 108,
+                                  128, 144, 160, 162, 192, 200, 240, 256, 288, 320, 324};
+  if (n < kFast[0]) return cv::getOptimalDFTSize(n);
+  for (int m : kFast) {
+    if (m >= n) return m;
+  }
+  int m = (n + 7) / 8 * 8;
   while (cv::getOptimalDFTSize(m) != m) m += 8;
   return m;
 }
@@ -846,25 +853,45 @@ ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& bas
   Status flat = CheckFlat(tfield, "template", reason);
   if (flat == Status::kOk) flat = CheckFlat(bfield, "base", reason);
   if (flat != Status::kOk) return flat;
+  // Only the parts where valid template pixels can meet valid base pixels are transformed: the
+  // masks' bounding boxes (the fields are zero elsewhere, so no correlation changes, and the FFT
+  // gets smaller). The fields themselves are made on the whole parts as before (their noise
+  // estimate and median depend on the region).
+  const cv::Rect templ_valid =
+      templ_mask.empty() ? cv::Rect(0, 0, templ.cols, templ.rows) : cv::boundingRect(templ_mask);
+  const cv::Rect base_valid =
+      base_mask.empty() ? cv::Rect(0, 0, base.cols, base.rows) : cv::boundingRect(base_mask);
+  const cv::Rect templ_use = templ_roi & templ_valid &
+                             cv::Rect(cv::Point(base_valid.x - u1, base_valid.y - v1),
+                                      cv::Point(base_valid.br().x - u0, base_valid.br().y - v0));
+  const cv::Rect base_use = base_roi & base_valid &
+                            cv::Rect(cv::Point(templ_use.x + u0, templ_use.y + v0),
+                                     cv::Point(templ_use.br().x + u1, templ_use.br().y + v1));
+  if (templ_use.empty() || base_use.empty()) {
+    *reason = "no valid template pixel can meet a valid base pixel within the search radius";
+    return Status::kTooLittleOverlap;
+  }
 
   // c(j) = sum_p t(p) b'(p + j), j = 0..n-1, with the base shifted right by d so that j = 0 is
   // offset (u0, v0); the FFT size leaves no wrap-around for those j.
-  const int dx = base_roi.x - (templ_roi.x + u0), dy = base_roi.y - (templ_roi.y + v0);
-  const int fft_w = FastDftSize(std::max({2, templ_roi.width + nu - 1, dx + base_roi.width}));
-  const int fft_h = FastDftSize(std::max(templ_roi.height + nv - 1, dy + base_roi.height));
+  const int dx = base_use.x - (templ_use.x + u0), dy = base_use.y - (templ_use.y + v0);
+  const int fft_w = FastDftSize(std::max({2, templ_use.width + nu - 1, dx + base_use.width}));
+  const int fft_h = FastDftSize(std::max(templ_use.height + nv - 1, dy + base_use.height));
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const int n_fields = mask_out_flat ? 4 : 3;
-  auto transform = [&](const Field& f, const cv::Rect& place, cv::Mat* spectra) {
+  // use: the part of the field transformed (image pixels), placed at `at` in the FFT array.
+  auto transform = [&](const Field& f, const cv::Rect& use, cv::Point at, cv::Mat* spectra) {
     const cv::Mat* sources[4] = {&f.cos_w, &f.sin_w, &f.valid, &f.den_w};
+    const cv::Rect in_field = use - f.region.tl(), place(at, use.size());
     pad_.create(fft_h, fft_w, CV_32F);
     pad_.setTo(0.0f);
     for (int k = 0; k < n_fields; ++k) {
-      sources[k]->copyTo(pad_(place));  // Outside `place` stays zero.
+      (*sources[k])(in_field).copyTo(pad_(place));  // Outside `place` stays zero.
       ForwardDft(pad_, place.br().y, &spectra[k]);
     }
   };
-  transform(tfield, cv::Rect(cv::Point(0, 0), templ_roi.size()), spec_t_);
-  transform(bfield, cv::Rect(cv::Point(dx, dy), base_roi.size()), spec_b_);
+  transform(tfield, templ_use, cv::Point(0, 0), spec_t_);
+  transform(bfield, base_use, cv::Point(dx, dy), spec_b_);
   cv::mulSpectrums(spec_b_[0], spec_t_[0], spec_num_, 0, true);
   cv::mulSpectrums(spec_b_[1], spec_t_[1], spec_den_, 0, true);
   spec_num_ += spec_den_;
