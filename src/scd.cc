@@ -199,27 +199,25 @@ cv::Mat CubicWeights(double t) {
   return (cv::Mat_<float>(4, 1) << w(t + 1.0), w(t), w(1.0 - t), w(2.0 - t));
 }
 
-// out(k) = src(origin + step k + shift) for k in [0, count): the separable cubic (Keys) of
-// CubicShift at every step-th pixel of src only (step 1 or 2), reads clamped to src, for
-// |shift| < 2 px. Two passes of four taps without OpenCV's per-call filter set-up (5 shifts per
-// pair); the vertical pass runs on the output rows only.
-void CubicShiftSampled(const cv::Mat& src, cv::Point origin, cv::Size count, int step,
-                       const Eigen::Vector2d& shift, cv::Mat* out, cv::Mat* tmp) {
-  const double fx = std::floor(shift.x()), fy = std::floor(shift.y());
-  const cv::Mat kx = CubicWeights(shift.x() - fx), ky = CubicWeights(shift.y() - fy);
-  const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
+// The vertical pass of CubicShiftSampled: rows(k, j) = sum_i wy_i src(origin.y + step k +
+// floor(shift_y) - 1 + i, origin.x - 3 + j) at the output rows only, on every column any
+// horizontal shift of |shift.x| < 2 reads (j < step (count.width - 1) + 7), reads clamped to src.
+// One vertical pass serves all the refit's shifts with the same shift_y.
+void CubicRows(const cv::Mat& src, cv::Point origin, cv::Size count, int step, double shift_y,
+               cv::Mat* rows) {
+  const double fy = std::floor(shift_y);
+  const cv::Mat ky = CubicWeights(shift_y - fy);
   const float wy[4] = {ky.at<float>(0), ky.at<float>(1), ky.at<float>(2), ky.at<float>(3)};
-  const int c0 = origin.x + static_cast<int>(fx) - 1, r0 = origin.y + static_cast<int>(fy) - 1;
-  const int tw = step * (count.width - 1) + 4;
-  tmp->create(count.height, tw, CV_32F);
-  out->create(count, CV_32F);
+  const int c0 = origin.x - 3, r0 = origin.y + static_cast<int>(fy) - 1;
+  const int tw = step * (count.width - 1) + 7;
+  rows->create(count.height, tw, CV_32F);
   const int j_lo = std::clamp(-c0, 0, tw), j_hi = std::clamp(src.cols - c0, j_lo, tw);
   for (int y = 0; y < count.height; ++y) {
     const float* s[4];
     for (int k = 0; k < 4; ++k) {
       s[k] = src.ptr<float>(std::clamp(r0 + step * y + k, 0, src.rows - 1));
     }
-    float* t = tmp->ptr<float>(y);
+    float* t = rows->ptr<float>(y);
     auto scalar = [&](int j) {
       const int col = std::clamp(c0 + j, 0, src.cols - 1);
       t[j] = wy[0] * s[0][col] + wy[1] * s[1][col] + wy[2] * s[2][col] + wy[3] * s[3][col];
@@ -236,6 +234,20 @@ void CubicShiftSampled(const cv::Mat& src, cv::Point origin, cv::Size count, int
     }
 #endif
     for (; j < tw; ++j) scalar(j);
+  }
+}
+
+// out(k) = src(origin + step k + shift) for k in [0, count) from the vertical pass `rows` of
+// CubicRows at shift.y(): the horizontal four taps at the output columns only (step 1 or 2).
+// Together the separable cubic (Keys) of CubicShift without OpenCV's per-call filter set-up.
+void CubicColumns(const cv::Mat& rows, cv::Size count, int step, double shift_x, cv::Mat* out) {
+  const double fx = std::floor(shift_x);
+  const cv::Mat kx = CubicWeights(shift_x - fx);
+  const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
+  const int first = static_cast<int>(fx) + 2;  // column of tap 0 of output 0 in `rows`
+  out->create(count, CV_32F);
+  for (int y = 0; y < count.height; ++y) {
+    const float* t = rows.ptr<float>(y) + first;
     float* o = out->ptr<float>(y);
     int x = 0;
 #if CV_SIMD128
@@ -247,8 +259,8 @@ void CubicShiftSampled(const cv::Mat& src, cv::Point origin, cv::Size count, int
                                x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
       }
     } else if (step == 2) {
-      // Taps 2x + 0..3 of four outputs from two de-interleaved loads; the last reads t[2x + 9],
-      // inside tw = 2 count + 2 while x + 4 <= count.
+      // Taps 2x + 0..3 of four outputs from two de-interleaved loads; the last reads t[2x + 9]
+      // (x + 4 <= count.width), inside the row: first + 2 count.width + 1 < 2 count.width + 5.
       for (; x + 4 <= count.width; x += 4) {
         cv::v_float32x4 e0, o0, e2, o2;
         cv::v_load_deinterleave(t + 2 * x, e0, o0);
@@ -1015,8 +1027,21 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
   // shifted(k) = gradient(b0 + step k + shift) at the template's samples only (gx, gy cover
   // base.region); reads past the gradients' edge are clamped, and reach at most 2 px in, where
   // Refine's margin keeps the overlap out.
-  CubicShiftSampled(fine_scratch_.gx, b0, in_t.size(), step, shift, &shifted_gx_, &shift_tmp_);
-  CubicShiftSampled(fine_scratch_.gy, b0, in_t.size(), step, shift, &shifted_gy_, &shift_tmp_);
+  // The vertical passes are kept for the next call with the same shift.y (the refit's centre
+  // and x neighbours share one).
+  ShiftRows& rows = shift_rows_;
+  if (!(rows.valid && rows.origin == b0 && rows.count == in_t.size() && rows.step == step &&
+        rows.shift_y == shift.y())) {
+    CubicRows(fine_scratch_.gx, b0, in_t.size(), step, shift.y(), &rows.gx);
+    CubicRows(fine_scratch_.gy, b0, in_t.size(), step, shift.y(), &rows.gy);
+    rows.valid = true;
+    rows.origin = b0;
+    rows.count = in_t.size();
+    rows.step = step;
+    rows.shift_y = shift.y();
+  }
+  CubicColumns(rows.gx, in_t.size(), step, shift.x(), &shifted_gx_);
+  CubicColumns(rows.gy, in_t.size(), step, shift.x(), &shifted_gy_);
   // Unit vectors of the shifted gradients (Normalise without weighting) dotted with the
   // template's on the fly: num = sum t . b / |b| over oriented base pixels.
   const float floor_sq = base.floor_sq;
@@ -1115,6 +1140,7 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
                options_.fine_template_step);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
                &base_noise);
+  shift_rows_.valid = false;  // New gradients: no vertical pass of EvaluateShifted holds.
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;

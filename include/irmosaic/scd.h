@@ -193,7 +193,16 @@ class IRMOSAIC_EXPORT ScdMatcher {
   Filter fine_, coarse_;
   // Scratch, reused between calls.
   Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
-  cv::Mat shifted_gx_, shifted_gy_, shift_tmp_;
+  cv::Mat shifted_gx_, shifted_gy_;
+  // Vertical passes of the last resampling (EvaluateShifted), reused while its key holds.
+  struct ShiftRows {
+    bool valid = false;
+    cv::Point origin;
+    cv::Size count;
+    int step = 1;
+    double shift_y = 0.0;
+    cv::Mat gx, gy;
+  } shift_rows_;
   std::vector<uint8_t> erode_pad_;  // row scratch of the erosion and the reduction
   std::vector<float> reduce_sum_;
   std::vector<float> magnitudes_;  // sample for the median gradient magnitude
