@@ -352,6 +352,68 @@ void LoadValidFilled(const cv::Mat& image, const cv::Mat& mask, cv::Mat* f32, cv
   }
 }
 
+// Pixels where both CV_8U masks a and b (same size; pass a twice for one mask) are set: their
+// count and, if box is given, their bounding box (empty when none). One pass, no temporary,
+// 16 pixels at a time (instead of bitwise_and, then countNonZero or boundingRect).
+void BothSet(const cv::Mat& a, const cv::Mat& b, int64_t* count, cv::Rect* box) {
+  const int w = a.cols;
+  int64_t n = 0;
+  int x_lo = w, x_hi = -1, y_lo = a.rows, y_hi = -1;
+  for (int y = 0; y < a.rows; ++y) {
+    const uint8_t* pa = a.ptr<uint8_t>(y);
+    const uint8_t* pb = b.ptr<uint8_t>(y);
+    int64_t row_n = 0;
+    int first = -1, last = -1;  // first and last set column of the row
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_uint8x16 zero = cv::v_setzero_u8();
+    auto sum = [](const cv::v_uint8x16& v) {
+      cv::v_uint16x8 lo, hi;
+      cv::v_expand(v, lo, hi);
+      return static_cast<int64_t>(cv::v_reduce_sum(lo + hi));
+    };
+    cv::v_uint8x16 acc = zero;
+    int blocks = 0, first_block = -1, last_block = -1;
+    for (; x + 16 <= w; x += 16) {
+      const cv::v_uint8x16 set = cv::v_min(cv::v_load(pa + x), cv::v_load(pb + x)) != zero;
+      if (box && cv::v_check_any(set)) {
+        if (first_block < 0) first_block = x;
+        last_block = x;
+      }
+      acc = cv::v_sub_wrap(acc, set);  // +1 where set (set lanes are 0xff)
+      if (++blocks == 255) {
+        row_n += sum(acc);
+        acc = zero;
+        blocks = 0;
+      }
+    }
+    row_n += sum(acc);
+    if (first_block >= 0) {
+      first = first_block;
+      while (!(pa[first] && pb[first])) ++first;
+      last = last_block + 15;
+      while (!(pa[last] && pb[last])) --last;
+    }
+#endif
+    for (; x < w; ++x) {
+      if (pa[x] && pb[x]) {
+        ++row_n;
+        if (first < 0) first = x;
+        last = x;
+      }
+    }
+    if (row_n > 0) {
+      y_lo = std::min(y_lo, y);
+      y_hi = y;
+      x_lo = std::min(x_lo, first);
+      x_hi = std::max(x_hi, last);
+    }
+    n += row_n;
+  }
+  *count = n;
+  if (box) *box = y_hi < 0 ? cv::Rect() : cv::Rect(x_lo, y_lo, x_hi - x_lo + 1, y_hi - y_lo + 1);
+}
+
 // a[i] = min(a[i], a[i + d]) for i in [0, n), in place (ascending, so a[i + d] is still the old
 // value), 16 bytes at a time: reads a[0, n + d + 15).
 void MinShiftedInPlace(uint8_t* a, int n, int d) {
@@ -1113,14 +1175,12 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   cv::Rect t_roi = templ_rect & (base_rect - start);
   if (!t_roi.empty() && (!templ_mask.empty() || !base_mask.empty())) {
     // Only the bounding box of the valid overlap: with irregular masks it is much smaller.
-    if (templ_mask.empty()) {
-      cv::compare(base_mask(t_roi + start), 0, tmp_, cv::CMP_NE);
-    } else if (base_mask.empty()) {
-      cv::compare(templ_mask(t_roi), 0, tmp_, cv::CMP_NE);
-    } else {
-      cv::bitwise_and(templ_mask(t_roi), base_mask(t_roi + start), tmp_);
-    }
-    t_roi = cv::boundingRect(tmp_) + t_roi.tl();
+    const cv::Mat t = templ_mask.empty() ? base_mask(t_roi + start) : templ_mask(t_roi);
+    const cv::Mat b = base_mask.empty() ? t : base_mask(t_roi + start);
+    int64_t both = 0;
+    cv::Rect box;
+    BothSet(t, b, &both, &box);
+    t_roi = box + t_roi.tl();
   }
   t_roi =
       cv::Rect(t_roi.x - grow, t_roi.y - grow, t_roi.width + 2 * grow, t_roi.height + 2 * grow) &
@@ -1355,8 +1415,9 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
   } else if (base_mask.empty()) {
     result.overlap_px = cv::countNonZero(templ_mask(in_templ));
   } else {
-    cv::bitwise_and(templ_mask(in_templ), base_mask(in_base), tmp_);
-    result.overlap_px = cv::countNonZero(tmp_);
+    int64_t both = 0;
+    BothSet(templ_mask(in_templ), base_mask(in_base), &both, nullptr);
+    result.overlap_px = static_cast<double>(both);
   }
   result.overlap_fraction = result.overlap_px / templ_valid_px;
 

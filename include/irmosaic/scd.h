@@ -206,7 +206,7 @@ class IRMOSAIC_EXPORT ScdMatcher {
   std::vector<uint8_t> erode_pad_;  // row scratch of the erosion and the reduction
   std::vector<float> reduce_sum_;
   std::vector<float> magnitudes_;  // sample for the median gradient magnitude
-  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
+  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
   std::map<std::tuple<int, int, int, int>, cv::Ptr<cv::hal::DFT2D>> dft_plans_;
