@@ -830,7 +830,7 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double 
         const cv::v_float32x4 vx = cv::v_load(gx + x), vy = cv::v_load(gy + x);
         const cv::v_float32x4 m2 = vx * vx + vy * vy;
         const cv::v_float32x4 keep = (cv::v_load(v + x) != zero) & (m2 > floor4) & (m2 > zero);
-        const cv::v_float32x4 inv_m = one / cv::v_sqrt(cv::v_max(m2, tiny));
+        const cv::v_float32x4 inv_m = cv::v_invsqrt(cv::v_max(m2, tiny));
         const cv::v_float32x4 inv = cv::v_select(keep, cv::v_min(cap4 * inv_m, inv_med4), zero);
         cv::v_store(c + x, vx * inv);
         cv::v_store(s + x, vy * inv);
@@ -1137,7 +1137,7 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
         }
         const cv::v_float32x4 m2 = bx * bx + by * by;
         const cv::v_float32x4 keep = (valid != zero) & (m2 > floor4) & (m2 > zero);
-        const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
+        const cv::v_float32x4 inv = cv::v_select(keep, cv::v_invsqrt(cv::v_max(m2, tiny)), zero);
         vn += (cv::v_load(tc + x) * bx + cv::v_load(ts + x) * by) * inv;
         vd += cv::v_load(td + x) * (mask_out_flat ? cv::v_select(keep, one, zero) : valid);
       }
