@@ -6,7 +6,7 @@
 //             SCD options (library defaults when absent): [--sigma S] [--floor K]
 //             [--flat zero|mask|soft] [--criterion sig|scd] [--subpixel parabola|gauss]
 //             [--subpixel_step H] [--min_ratio R] [--pyramid F] [--coarse_sigma S]
-//             [--weight_cap C]
+//             [--weight_cap C] [--template_step 1|2]
 //
 // Pairs: real thermal frames (shared/data/thermal) warped by an oblique homography onto a
 // 1150x760 "ortho" canvas (irregular valid area), two 640x512 crops with 15-25 % valid overlap
@@ -289,7 +289,8 @@ int main(int argc, char** argv) {
                                              {"--coarse_sigma", ""},
                                              {"--subpixel_step", ""},
                                              {"--min_ratio", ""},
-                                             {"--weight_cap", ""}};
+                                             {"--weight_cap", ""},
+                                             {"--template_step", ""}};
   for (int i = 1; i + 1 < argc; i += 2) {
     if (!args.count(argv[i])) {
       std::fprintf(stderr, "unknown option %s\n", argv[i]);
@@ -311,6 +312,7 @@ int main(int argc, char** argv) {
   set("--subpixel_step", &options.subpixel_step_px);
   set("--min_ratio", &options.min_peak_ratio);
   set("--weight_cap", &options.magnitude_weight_cap);
+  set("--template_step", &options.fine_template_step);
   if (args["--flat"] == "mask") options.flat_handling = irmosaic::ScdFlatHandling::kMaskOut;
   if (args["--flat"] == "zero") options.flat_handling = irmosaic::ScdFlatHandling::kZero;
   if (args["--flat"] == "soft") options.flat_handling = irmosaic::ScdFlatHandling::kSoft;
@@ -420,6 +422,7 @@ int main(int argc, char** argv) {
                             {"min_peak_ratio", options.min_peak_ratio},
                             {"pyramid_factor", options.pyramid_factor},
                             {"coarse_gradient_sigma_px", options.coarse_gradient_sigma_px},
+                            {"fine_template_step", options.fine_template_step},
                             {"radius_px", radius}}},
                           {"pairs", scenes.size()},
                           {"overall_scd_success_rate", scd_all.Rate()},

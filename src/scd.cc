@@ -95,6 +95,22 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
   return count > 0 ? std::sqrt(CV_PI / 2.0) / 6.0 * sum / static_cast<double>(count) : 0.0;
 }
 
+// DFT length >= n that OpenCV transforms fastest: among the 2-3-5-smooth lengths some are much
+// slower than a longer one (measured, one thread, OpenCV 4.6, n x 120 and 120 x n transforms:
+// 90: 78 us, 96: 73; 120: 97, 128: 97; 135: 148, 144: 116), so the table keeps only lengths
+// that no longer one beats; past it, multiples of 8 (odd lengths were the slow ones).
+int FastDftSize(int n) {
+  static constexpr int kFast[] = {32,  36,  40,  48,  50,  54,  64,  72,  80,  96,  100, 108,
+                                  128, 144, 160, 162, 192, 200, 240, 256, 288, 320, 324};
+  if (n < kFast[0]) return cv::getOptimalDFTSize(n);
+  for (int m : kFast) {
+    if (m >= n) return m;
+  }
+  int m = (n + 7) / 8 * 8;
+  while (cv::getOptimalDFTSize(m) != m) m += 8;
+  return m;
+}
+
 // Sub-pixel position of a peak from its two neighbours (c the peak value); in [-0.5, 0.5].
 double ParabolaDelta(double left, double centre, double right) {
   const double curvature = left - 2.0 * centre + right;
@@ -162,6 +178,9 @@ bool ScdOptions::IsValid(std::string* error) const {
   if (!(coarse_gradient_sigma_px >= 0.0 && coarse_gradient_sigma_px <= 20.0)) {
     return fail("coarse_gradient_sigma_px must be in [0, 20]");
   }
+  if (fine_template_step != 1 && fine_template_step != 2) {
+    return fail("fine_template_step must be 1 or 2");
+  }
   if (!(subpixel_refit_max_px >= 0.0 && subpixel_refit_max_px <= 2.0)) {
     return fail("subpixel_refit_max_px must be in [0, 2]");
   }
@@ -188,24 +207,25 @@ cv::Mat CubicWeights(double t) {
   return (cv::Mat_<float>(4, 1) << w(t + 1.0), w(t), w(1.0 - t), w(2.0 - t));
 }
 
-// out(p) = src(p + r.tl() + shift) for p in r.size(): the separable cubic (Keys) of
-// CubicShift on the rectangle r of src only, reads clamped to src, for |shift| < 2 px. Two
-// passes of four taps without OpenCV's per-call filter set-up (5 shifts per pair).
-void CubicShiftRect(const cv::Mat& src, const cv::Rect& r, const Eigen::Vector2d& shift,
-                    cv::Mat* out, cv::Mat* tmp) {
-  const double fx = std::floor(shift.x()), fy = std::floor(shift.y());
-  const cv::Mat kx = CubicWeights(shift.x() - fx), ky = CubicWeights(shift.y() - fy);
-  const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
+// The vertical pass of CubicShiftSampled: rows(k, j) = sum_i wy_i src(origin.y + step k +
+// floor(shift_y) - 1 + i, origin.x - 3 + j) at the output rows only, on every column any
+// horizontal shift of |shift.x| < 2 reads (j < step (count.width - 1) + 7), reads clamped to src.
+// One vertical pass serves all the refit's shifts with the same shift_y.
+void CubicRows(const cv::Mat& src, cv::Point origin, cv::Size count, int step, double shift_y,
+               cv::Mat* rows) {
+  const double fy = std::floor(shift_y);
+  const cv::Mat ky = CubicWeights(shift_y - fy);
   const float wy[4] = {ky.at<float>(0), ky.at<float>(1), ky.at<float>(2), ky.at<float>(3)};
-  const int c0 = r.x + static_cast<int>(fx) - 1, r0 = r.y + static_cast<int>(fy) - 1;
-  const int tw = r.width + 3;
-  tmp->create(r.height, tw, CV_32F);
-  out->create(r.size(), CV_32F);
+  const int c0 = origin.x - 3, r0 = origin.y + static_cast<int>(fy) - 1;
+  const int tw = step * (count.width - 1) + 7;
+  rows->create(count.height, tw, CV_32F);
   const int j_lo = std::clamp(-c0, 0, tw), j_hi = std::clamp(src.cols - c0, j_lo, tw);
-  for (int y = 0; y < r.height; ++y) {
+  for (int y = 0; y < count.height; ++y) {
     const float* s[4];
-    for (int k = 0; k < 4; ++k) s[k] = src.ptr<float>(std::clamp(r0 + y + k, 0, src.rows - 1));
-    float* t = tmp->ptr<float>(y);
+    for (int k = 0; k < 4; ++k) {
+      s[k] = src.ptr<float>(std::clamp(r0 + step * y + k, 0, src.rows - 1));
+    }
+    float* t = rows->ptr<float>(y);
     auto scalar = [&](int j) {
       const int col = std::clamp(c0 + j, 0, src.cols - 1);
       t[j] = wy[0] * s[0][col] + wy[1] * s[1][col] + wy[2] * s[2][col] + wy[3] * s[3][col];
@@ -222,44 +242,242 @@ void CubicShiftRect(const cv::Mat& src, const cv::Rect& r, const Eigen::Vector2d
     }
 #endif
     for (; j < tw; ++j) scalar(j);
+  }
+}
+
+// out(k) = src(origin + step k + shift) for k in [0, count) from the vertical pass `rows` of
+// CubicRows at shift.y(): the horizontal four taps at the output columns only (step 1 or 2).
+// Together the separable cubic (Keys) of CubicShift without OpenCV's per-call filter set-up.
+void CubicColumns(const cv::Mat& rows, cv::Size count, int step, double shift_x, cv::Mat* out) {
+  const double fx = std::floor(shift_x);
+  const cv::Mat kx = CubicWeights(shift_x - fx);
+  const float wx[4] = {kx.at<float>(0), kx.at<float>(1), kx.at<float>(2), kx.at<float>(3)};
+  const int first = static_cast<int>(fx) + 2;  // column of tap 0 of output 0 in `rows`
+  out->create(count, CV_32F);
+  for (int y = 0; y < count.height; ++y) {
+    const float* t = rows.ptr<float>(y) + first;
     float* o = out->ptr<float>(y);
     int x = 0;
 #if CV_SIMD128
     const cv::v_float32x4 x0 = cv::v_setall_f32(wx[0]), x1 = cv::v_setall_f32(wx[1]);
     const cv::v_float32x4 x2 = cv::v_setall_f32(wx[2]), x3 = cv::v_setall_f32(wx[3]);
-    for (; x + 4 <= r.width; x += 4) {
-      cv::v_store(o + x, x0 * cv::v_load(t + x) + x1 * cv::v_load(t + x + 1) +
-                             x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
+    if (step == 1) {
+      for (; x + 4 <= count.width; x += 4) {
+        cv::v_store(o + x, x0 * cv::v_load(t + x) + x1 * cv::v_load(t + x + 1) +
+                               x2 * cv::v_load(t + x + 2) + x3 * cv::v_load(t + x + 3));
+      }
+    } else if (step == 2) {
+      // Taps 2x + 0..3 of four outputs from two de-interleaved loads; the last reads t[2x + 9]
+      // (x + 4 <= count.width), inside the row: first + 2 count.width + 1 < 2 count.width + 5.
+      for (; x + 4 <= count.width; x += 4) {
+        cv::v_float32x4 e0, o0, e2, o2;
+        cv::v_load_deinterleave(t + 2 * x, e0, o0);
+        cv::v_load_deinterleave(t + 2 * x + 2, e2, o2);
+        cv::v_store(o + x, x0 * e0 + x1 * o0 + x2 * e2 + x3 * o2);
+      }
     }
 #endif
-    for (; x < r.width; ++x) {
-      o[x] = wx[0] * t[x] + wx[1] * t[x + 1] + wx[2] * t[x + 2] + wx[3] * t[x + 3];
+    for (; x < count.width; ++x) {
+      const float* tx = t + step * x;
+      o[x] = wx[0] * tx[0] + wx[1] * tx[1] + wx[2] * tx[2] + wx[3] * tx[3];
     }
   }
 }
 
+// *f32 = image as float, *valid = 255 where the mask (empty: all) is set and the sample is
+// finite, else 0; invalid samples then hold the mean of the valid ones (0 if none), so that a
+// mask edge is a small step. One pass (two with no-data), 16 pixels at a time.
+void LoadValidFilled(const cv::Mat& image, const cv::Mat& mask, cv::Mat* f32, cv::Mat* valid) {
+  if (image.depth() != CV_32F) {
+    image.convertTo(*f32, CV_32F);  // 8 and 16 bit samples are finite; converted in place below
+  } else {
+    f32->create(image.size(), CV_32F);
+  }
+  const cv::Mat& src = image.depth() == CV_32F ? image : *f32;
+  valid->create(image.size(), CV_8U);
+  const int w = image.cols;
+  double sum = 0.0;
+  int64_t count = 0;
+  for (int y = 0; y < image.rows; ++y) {
+    const float* in = src.ptr<float>(y);
+    const uint8_t* m = mask.empty() ? nullptr : mask.ptr<uint8_t>(y);
+    float* out = f32->ptr<float>(y);
+    uint8_t* ok = valid->ptr<uint8_t>(y);
+    float row_sum = 0.0f;
+    int row_count = 0;
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_uint32x4 exponent = cv::v_setall_u32(0x7f800000u), zero_u = cv::v_setzero_u32();
+    const cv::v_uint32x4 all_u = cv::v_setall_u32(0xffffffffu);
+    const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
+    cv::v_float32x4 vsum = zero, vcount = zero;
+    for (; x + 16 <= w; x += 16) {
+      cv::v_uint32x4 good[4];
+      for (int k = 0; k < 4; ++k) {
+        const cv::v_float32x4 v = cv::v_load(in + x + 4 * k);
+        const cv::v_uint32x4 finite = (cv::v_reinterpret_as_u32(v) & exponent) != exponent;
+        const cv::v_uint32x4 set = m ? cv::v_load_expand_q(m + x + 4 * k) != zero_u : all_u;
+        good[k] = finite & set;
+        cv::v_store(out + x + 4 * k, cv::v_select(cv::v_reinterpret_as_f32(finite), v, zero));
+        const cv::v_float32x4 g = cv::v_reinterpret_as_f32(good[k]);
+        vsum += cv::v_select(g, v, zero);
+        vcount += cv::v_select(g, one, zero);
+      }
+      cv::v_store(ok + x, cv::v_pack(cv::v_pack(good[0], good[1]), cv::v_pack(good[2], good[3])));
+    }
+    row_sum = cv::v_reduce_sum(vsum);
+    row_count = static_cast<int>(cv::v_reduce_sum(vcount));
+#endif
+    for (; x < w; ++x) {
+      const float v = in[x];
+      const bool finite = std::abs(v) <= std::numeric_limits<float>::max();  // NaN: false
+      const bool good = finite && (!m || m[x] != 0);
+      out[x] = finite ? v : 0.0f;
+      ok[x] = good ? 255 : 0;
+      row_sum += good ? v : 0.0f;
+      row_count += good;
+    }
+    sum += row_sum;
+    count += row_count;
+  }
+  if (count == static_cast<int64_t>(image.total())) return;
+  const float fill = count > 0 ? static_cast<float>(sum / static_cast<double>(count)) : 0.0f;
+  for (int y = 0; y < image.rows; ++y) {
+    float* out = f32->ptr<float>(y);
+    const uint8_t* ok = valid->ptr<uint8_t>(y);
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_uint32x4 zero_u = cv::v_setzero_u32();
+    const cv::v_float32x4 fill4 = cv::v_setall_f32(fill);
+    for (; x + 4 <= w; x += 4) {
+      const cv::v_float32x4 g = cv::v_reinterpret_as_f32(cv::v_load_expand_q(ok + x) != zero_u);
+      cv::v_store(out + x, cv::v_select(g, cv::v_load(out + x), fill4));
+    }
+#endif
+    for (; x < w; ++x) {
+      if (!ok[x]) out[x] = fill;
+    }
+  }
+}
+
+// Pixels where both CV_8U masks a and b (same size; pass a twice for one mask) are set: their
+// count and, if box is given, their bounding box (empty when none). One pass, no temporary,
+// 16 pixels at a time (instead of bitwise_and, then countNonZero or boundingRect).
+void BothSet(const cv::Mat& a, const cv::Mat& b, int64_t* count, cv::Rect* box) {
+  const int w = a.cols;
+  int64_t n = 0;
+  int x_lo = w, x_hi = -1, y_lo = a.rows, y_hi = -1;
+  for (int y = 0; y < a.rows; ++y) {
+    const uint8_t* pa = a.ptr<uint8_t>(y);
+    const uint8_t* pb = b.ptr<uint8_t>(y);
+    int64_t row_n = 0;
+    int first = -1, last = -1;  // first and last set column of the row
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_uint8x16 zero = cv::v_setzero_u8();
+    auto sum = [](const cv::v_uint8x16& v) {
+      cv::v_uint16x8 lo, hi;
+      cv::v_expand(v, lo, hi);
+      return static_cast<int64_t>(cv::v_reduce_sum(lo + hi));
+    };
+    cv::v_uint8x16 acc = zero;
+    int blocks = 0, first_block = -1, last_block = -1;
+    for (; x + 16 <= w; x += 16) {
+      const cv::v_uint8x16 set = cv::v_min(cv::v_load(pa + x), cv::v_load(pb + x)) != zero;
+      if (box && cv::v_check_any(set)) {
+        if (first_block < 0) first_block = x;
+        last_block = x;
+      }
+      acc = cv::v_sub_wrap(acc, set);  // +1 where set (set lanes are 0xff)
+      if (++blocks == 255) {
+        row_n += sum(acc);
+        acc = zero;
+        blocks = 0;
+      }
+    }
+    row_n += sum(acc);
+    if (first_block >= 0) {
+      first = first_block;
+      while (!(pa[first] && pb[first])) ++first;
+      last = last_block + 15;
+      while (!(pa[last] && pb[last])) --last;
+    }
+#endif
+    for (; x < w; ++x) {
+      if (pa[x] && pb[x]) {
+        ++row_n;
+        if (first < 0) first = x;
+        last = x;
+      }
+    }
+    if (row_n > 0) {
+      y_lo = std::min(y_lo, y);
+      y_hi = y;
+      x_lo = std::min(x_lo, first);
+      x_hi = std::max(x_hi, last);
+    }
+    n += row_n;
+  }
+  *count = n;
+  if (box) *box = y_hi < 0 ? cv::Rect() : cv::Rect(x_lo, y_lo, x_hi - x_lo + 1, y_hi - y_lo + 1);
+}
+
+// a[i] = min(a[i], a[i + d]) for i in [0, n), in place (ascending, so a[i + d] is still the old
+// value), 16 bytes at a time: reads a[0, n + d + 15).
+void MinShiftedInPlace(uint8_t* a, int n, int d) {
+  int i = 0;
+#if CV_SIMD128
+  for (; i < n; i += 16) cv::v_store(a + i, cv::v_min(cv::v_load(a + i), cv::v_load(a + i + d)));
+#endif
+  for (; i < n; ++i) a[i] = std::min(a[i], a[i + d]);
+}
+
+// out[i] = min(a[i], b[i]) for i in [0, n); out may be a, not b. When n >= 16 the last block
+// overlaps the one before (harmless: b is unchanged), so nothing is left to a scalar tail.
+void MinOf(const uint8_t* a, const uint8_t* b, int n, uint8_t* out) {
+  int i = 0;
+#if CV_SIMD128
+  if (n >= 16) {
+    for (;; i += 16) {
+      if (i + 16 > n) i = n - 16;
+      cv::v_store(out + i, cv::v_min(cv::v_load(a + i), cv::v_load(b + i)));
+      if (i + 16 == n) break;
+    }
+    return;
+  }
+#endif
+  for (; i < n; ++i) out[i] = std::min(a[i], b[i]);
+}
+
 // Binary erosion of a CV_8U mask (0 or 255) by a (2 r + 1) square, outside the image counting
-// as unset: the minimum over 2 r + 1 columns, then over 2 r + 1 rows, 16 pixels at a time. Same
-// result as cv::erode with a rectangle and BORDER_CONSTANT 0, without its per-call set-up.
+// as unset: the minimum over 2 r + 1 columns, then over 2 r + 1 rows, each by doubling (minima
+// over 1, 2, 4, .. P <= 2 r + 1 samples, then two overlapping P-windows: log steps instead of
+// 2 r per pixel). Same result as cv::erode with a rectangle and BORDER_CONSTANT 0, without its
+// per-call set-up.
 void ErodeSquare(const cv::Mat& mask, int r, cv::Mat* tmp, cv::Mat* out,
                  std::vector<uint8_t>* padded) {
   const int w = mask.cols, h = mask.rows, e = 2 * r + 1;
+  int p = 1;  // largest power of two <= e
+  while (2 * p <= e) p *= 2;
   tmp->create(mask.size(), CV_8U);
   out->create(mask.size(), CV_8U);
-  padded->assign(w + 2 * r + 16, 0);
+  // Row: r zeros, the row, zeros; windows [x, x + e) of it are [x - r, x + r] of the row. Levels
+  // are computed on [0, n), n past the last window's start, reading zeros beyond the row.
+  const int n = (w + e + 15) / 16 * 16;
+  padded->assign(n + 2 * e + 32, 0);
   uint8_t* pad = padded->data();
   for (int y = 0; y < h; ++y) {
+    std::fill_n(pad, padded->size(), uint8_t{0});
     std::copy_n(mask.ptr<uint8_t>(y), w, pad + r);
-    uint8_t* t = tmp->ptr<uint8_t>(y);
-    int x = 0;
-#if CV_SIMD128
-    for (; x + 16 <= w; x += 16) {
-      cv::v_uint8x16 m = cv::v_load(pad + x);
-      for (int k = 1; k < e; ++k) m = cv::v_min(m, cv::v_load(pad + x + k));
-      cv::v_store(t + x, m);
+    for (int d = 1; d < p; d *= 2) MinShiftedInPlace(pad, n, d);
+    MinOf(pad, pad + e - p, w, tmp->ptr<uint8_t>(y));
+  }
+  // Columns: the same doubling over rows, in place in tmp (row i holds the minimum of rows
+  // [i, i + d) after level d; only rows whose window lies inside are kept up to date).
+  for (int d = 1; d < p; d *= 2) {
+    for (int i = 0; i + 2 * d <= h; ++i) {
+      MinOf(tmp->ptr<uint8_t>(i), tmp->ptr<uint8_t>(i + d), w, tmp->ptr<uint8_t>(i));
     }
-#endif
-    for (; x < w; ++x) t[x] = *std::min_element(pad + x, pad + x + e);
   }
   for (int y = 0; y < h; ++y) {
     uint8_t* o = out->ptr<uint8_t>(y);
@@ -267,25 +485,34 @@ void ErodeSquare(const cv::Mat& mask, int r, cv::Mat* tmp, cv::Mat* out,
       std::fill_n(o, w, uint8_t{0});
       continue;
     }
-    int x = 0;
-#if CV_SIMD128
-    for (; x + 16 <= w; x += 16) {
-      cv::v_uint8x16 m = cv::v_load(tmp->ptr<uint8_t>(y - r) + x);
-      for (int k = 1; k < e; ++k) m = cv::v_min(m, cv::v_load(tmp->ptr<uint8_t>(y - r + k) + x));
-      cv::v_store(o + x, m);
-    }
-#endif
-    for (; x < w; ++x) {
-      uint8_t m = 255;
-      for (int k = 0; k < e; ++k) m = std::min(m, tmp->ptr<uint8_t>(y - r + k)[x]);
-      o[x] = m;
-    }
+    MinOf(tmp->ptr<uint8_t>(y - r), tmp->ptr<uint8_t>(y - r + e - p), w, o);
   }
 }
 
-// gx, gy = 3x3 Sobel of `src` on the rectangle r (both in one pass); reads outside r use src's
-// real neighbours, clamped at src's edge.
-void SobelXY(const cv::Mat& src, const cv::Rect& r, cv::Mat* gx, cv::Mat* gy) {
+// gx, gy = 3x3 Sobel of `src` on every step-th pixel of the rectangle r (both in one pass);
+// reads outside r use src's real neighbours, clamped at src's edge.
+void SobelXY(const cv::Mat& src, const cv::Rect& r, int step, cv::Mat* gx, cv::Mat* gy) {
+  if (step > 1) {
+    // The template of the fine level: a quarter of the samples, not worth a vector path.
+    const cv::Size n((r.width + step - 1) / step, (r.height + step - 1) / step);
+    gx->create(n, CV_32F);
+    gy->create(n, CV_32F);
+    for (int j = 0; j < n.height; ++j) {
+      const int sy = r.y + step * j;
+      const float* a = src.ptr<float>(std::max(0, sy - 1));
+      const float* b = src.ptr<float>(sy);
+      const float* c = src.ptr<float>(std::min(src.rows - 1, sy + 1));
+      float* ox = gx->ptr<float>(j);
+      float* oy = gy->ptr<float>(j);
+      for (int i = 0; i < n.width; ++i) {
+        const int x = r.x + step * i;
+        const int l = std::max(x - 1, 0), rr = std::min(x + 1, src.cols - 1);
+        ox[i] = (a[rr] - a[l]) + 2.0f * (b[rr] - b[l]) + (c[rr] - c[l]);
+        oy[i] = (c[l] + 2.0f * c[x] + c[rr]) - (a[l] + 2.0f * a[x] + a[rr]);
+      }
+    }
+    return;
+  }
   gx->create(r.size(), CV_32F);
   gy->create(r.size(), CV_32F);
   const int x_lo = std::max(0, 1 - r.x), x_hi = std::min(r.width, src.cols - 1 - r.x);
@@ -319,10 +546,11 @@ void SobelXY(const cv::Mat& src, const cv::Rect& r, cv::Mat* gx, cv::Mat* gy) {
   }
 }
 
-// Sums over matching rectangles of two fields' planes: num = sum tc bc + ts bs,
-// den = sum td bd. One pass, four lanes; rows summed in double.
+// Sums over two fields' planes: num = sum tc bc + ts bs, den = sum td bd, over the template
+// samples in_t, sample (x, y) of which meets base plane element b0 + step (x, y) (step 1 or 2).
+// One pass, four lanes; rows summed in double.
 void FieldSums(const cv::Mat& tc, const cv::Mat& ts, const cv::Mat& td, const cv::Mat& bc,
-               const cv::Mat& bs, const cv::Mat& bd, const cv::Rect& in_t, const cv::Rect& in_b,
+               const cv::Mat& bs, const cv::Mat& bd, const cv::Rect& in_t, cv::Point b0, int step,
                double* num, double* den) {
   double n = 0.0, d = 0.0;
   const int w = in_t.width;
@@ -330,29 +558,64 @@ void FieldSums(const cv::Mat& tc, const cv::Mat& ts, const cv::Mat& td, const cv
     const float* a_c = tc.ptr<float>(in_t.y + y) + in_t.x;
     const float* a_s = ts.ptr<float>(in_t.y + y) + in_t.x;
     const float* a_d = td.ptr<float>(in_t.y + y) + in_t.x;
-    const float* b_c = bc.ptr<float>(in_b.y + y) + in_b.x;
-    const float* b_s = bs.ptr<float>(in_b.y + y) + in_b.x;
-    const float* b_d = bd.ptr<float>(in_b.y + y) + in_b.x;
+    const float* b_c = bc.ptr<float>(b0.y + step * y) + b0.x;
+    const float* b_s = bs.ptr<float>(b0.y + step * y) + b0.x;
+    const float* b_d = bd.ptr<float>(b0.y + step * y) + b0.x;
     float row_n = 0.0f, row_d = 0.0f;
     int x = 0;
 #if CV_SIMD128
     cv::v_float32x4 vn = cv::v_setzero_f32(), vd = cv::v_setzero_f32();
-    for (; x + 4 <= w; x += 4) {
-      vn += cv::v_load(a_c + x) * cv::v_load(b_c + x) + cv::v_load(a_s + x) * cv::v_load(b_s + x);
-      vd += cv::v_load(a_d + x) * cv::v_load(b_d + x);
+    if (step == 1) {
+      for (; x + 4 <= w; x += 4) {
+        vn += cv::v_load(a_c + x) * cv::v_load(b_c + x) + cv::v_load(a_s + x) * cv::v_load(b_s + x);
+        vd += cv::v_load(a_d + x) * cv::v_load(b_d + x);
+      }
+    } else if (step == 2) {
+      // De-interleaved loads read base elements 2x .. 2x + 7: stay inside the base row.
+      const int fit = (bc.cols - b0.x) / 2 - 3;
+      cv::v_float32x4 bce, bse, bde, odd;
+      for (; x + 4 <= std::min(w, fit); x += 4) {
+        cv::v_load_deinterleave(b_c + 2 * x, bce, odd);
+        cv::v_load_deinterleave(b_s + 2 * x, bse, odd);
+        cv::v_load_deinterleave(b_d + 2 * x, bde, odd);
+        vn += cv::v_load(a_c + x) * bce + cv::v_load(a_s + x) * bse;
+        vd += cv::v_load(a_d + x) * bde;
+      }
     }
     row_n = cv::v_reduce_sum(vn);
     row_d = cv::v_reduce_sum(vd);
 #endif
     for (; x < w; ++x) {
-      row_n += a_c[x] * b_c[x] + a_s[x] * b_s[x];
-      row_d += a_d[x] * b_d[x];
+      const int bx = step * x;
+      row_n += a_c[x] * b_c[bx] + a_s[x] * b_s[bx];
+      row_d += a_d[x] * b_d[bx];
     }
     n += row_n;
     d += row_d;
   }
   *num = n;
   *den = d;
+}
+
+// Template samples first .. first + count - 1 of a field sampled at `step` from t_origin meet
+// base plane elements b_first + step * (i - first) of a full-rate field of b_size elements from
+// b_origin, at `offset` (one axis; count 0 when none does).
+struct AxisOverlap {
+  int first = 0, count = 0, b_first = 0;
+};
+AxisOverlap OverlapOnAxis(int t_origin, int t_samples, int step, int b_origin, int b_size,
+                          int offset) {
+  // Template sample i is base element d + step i.
+  const int d = t_origin + offset - b_origin;
+  auto floor_div = [step](int a) { return a >= 0 ? a / step : -((-a + step - 1) / step); };
+  const int lo = std::max(0, -floor_div(d));  // ceil(-d / step)
+  const int hi = std::min(t_samples - 1, floor_div(b_size - 1 - d));
+  AxisOverlap o;
+  if (hi < lo) return o;
+  o.first = lo;
+  o.count = hi - lo + 1;
+  o.b_first = d + step * lo;
+  return o;
 }
 
 // Reduces image and mask by an integer factor (pixel i covers [f i, f i + f)); a reduced pixel
@@ -455,7 +718,7 @@ ScdMatcher::ScdMatcher(ScdOptions options) : options_(options) {
 
 void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
                               const cv::Rect& roi, Scratch* scratch, Field* out,
-                              double* noise_std_io, Field* unit) {
+                              double* noise_std_io, Field* unit, int step) {
   cv::Mat& work_f32 = scratch->work_f32;
   cv::Mat& work_mask = scratch->work_mask;
   cv::Mat& blurred = scratch->blurred;
@@ -467,41 +730,12 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
       cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
       cv::Rect(0, 0, image.cols, image.rows);
   const cv::Rect inner(roi.x - ext.x, roi.y - ext.y, roi.width, roi.height);
-  // Float copy and validity (the mask, minus non-finite samples of float input), as whole-image
-  // OpenCV passes (vectorised; a scalar loop over the pixels cost more); then no-data filled with
-  // the valid mean so its edge is a small step. Erosion below keeps only pixels that neither a mask
-  // edge nor the image border (where the blur reflects the image) can reach through blur and Sobel.
-  // Outside the image counts as no data; outside `ext` but inside the image is farther than the
-  // erosion reaches.
-  image(ext).convertTo(work_f32, CV_32F);
-  if (mask.empty()) {
-    work_mask.create(ext.size(), CV_8U);
-    work_mask.setTo(255);
-  } else {
-    cv::compare(mask(ext), 0, work_mask, cv::CMP_NE);
-  }
-  if (image.depth() == CV_32F &&
-      !cv::checkRange(work_f32, true, nullptr, -std::numeric_limits<float>::max(),
-                      std::numeric_limits<float>::max())) {
-    // Rare: non-finite samples are invalid (their value is replaced by the fill below).
-    for (int y = 0; y < ext.height; ++y) {
-      float* v = work_f32.ptr<float>(y);
-      uint8_t* ok = work_mask.ptr<uint8_t>(y);
-      for (int x = 0; x < ext.width; ++x) {
-        if (!(std::abs(v[x]) <= std::numeric_limits<float>::max())) {  // NaN: true
-          v[x] = 0.0f;
-          ok[x] = 0;
-        }
-      }
-    }
-  }
-  const int valid_count = cv::countNonZero(work_mask);
-  if (valid_count < ext.area()) {
-    const float fill =
-        valid_count > 0 ? static_cast<float>(cv::mean(work_f32, work_mask)[0]) : 0.0f;
-    cv::bitwise_not(work_mask, tmp);
-    work_f32.setTo(fill, tmp);
-  }
+  // Float copy and validity (the mask, minus non-finite samples of float input), no-data filled
+  // with the valid mean, in one fused pass (the seven OpenCV passes it replaces cost more).
+  // Erosion below keeps only pixels that neither a mask edge nor the image border (where the
+  // blur reflects the image) can reach through blur and Sobel. Outside the image counts as no
+  // data; outside `ext` but inside the image is farther than the erosion reaches.
+  LoadValidFilled(image(ext), mask.empty() ? cv::Mat() : mask(ext), &work_f32, &work_mask);
   ErodeSquare(work_mask, filter.erode_px, &tmp, &scratch->eroded, &erode_pad_);
   cv::swap(work_mask, scratch->eroded);
   double noise_std = *noise_std_io;
@@ -515,18 +749,29 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
     cv::sepFilter2D(work_f32, blurred, CV_32F, filter.gauss, filter.gauss, cv::Point(-1, -1), 0.0,
                     cv::BORDER_REFLECT);
   }
-  SobelXY(blurred, inner, &gx_all, &gy_all);
+  SobelXY(blurred, inner, step, &gx_all, &gy_all);
 
   const float floor =
       static_cast<float>(options_.noise_floor_sigmas * noise_std * filter.noise_gain);
   out->region = roi;
+  out->step = step;
   out->floor_sq = floor * floor;
-  work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
-  const double valid_px = cv::countNonZero(work_mask(inner));
+  if (step == 1) {
+    work_mask(inner).convertTo(out->valid, CV_32F, 1.0 / 255.0);
+  } else {
+    out->valid.create(gx_all.size(), CV_32F);
+    for (int j = 0; j < gx_all.rows; ++j) {
+      const uint8_t* m = work_mask.ptr<uint8_t>(inner.y + step * j) + inner.x;
+      float* v = out->valid.ptr<float>(j);
+      for (int i = 0; i < gx_all.cols; ++i) v[i] = m[step * i] ? 1.0f : 0.0f;
+    }
+  }
+  const double valid_px = cv::countNonZero(out->valid);
   out->valid_px = valid_px;
   Normalise(gx_all, gy_all, options_.magnitude_weight_cap, out);
   if (unit) {
     unit->region = roi;
+    unit->step = step;
     unit->floor_sq = out->floor_sq;
     unit->valid = out->valid;  // Shared: Normalise does not write it.
     unit->valid_px = valid_px;
@@ -536,19 +781,21 @@ void ScdMatcher::ComputeField(const Filter& filter, const cv::Mat& image, const 
 
 void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double weight_cap,
                            Field* out) {
-  const cv::Size size = out->region.size();
+  const cv::Size size = gx_all.size();  // the field's planes (region sampled at its step)
   const float floor_sq = out->floor_sq;
   // Weighting w = min(cap, m / median) enters as inv = w / m = min(cap / m, 1 / median).
   const bool weighted = weight_cap > 0.0;
   float cap = 1.0f, inv_median = std::numeric_limits<float>::infinity();  // w = 1
   if (weighted) {
-    // Median magnitude of the valid pixels, sampled on every fourth row and column.
+    // Median magnitude of the valid pixels, sampled on every fourth row and column of the
+    // image (the same pixels at any step).
     magnitudes_.clear();
-    for (int y = 0; y < size.height; y += 4) {
+    const int every = std::max(1, 4 / out->step);
+    for (int y = 0; y < size.height; y += every) {
       const float* gx = gx_all.ptr<float>(y);
       const float* gy = gy_all.ptr<float>(y);
       const float* v = out->valid.ptr<float>(y);
-      for (int x = 0; x < size.width; x += 4) {
+      for (int x = 0; x < size.width; x += every) {
         if (v[x] != 0.0f) magnitudes_.push_back(gx[x] * gx[x] + gy[x] * gy[x]);
       }
     }
@@ -591,7 +838,7 @@ void ScdMatcher::Normalise(const cv::Mat& gx_all, const cv::Mat& gy_all, double 
         const cv::v_float32x4 vx = cv::v_load(gx + x), vy = cv::v_load(gy + x);
         const cv::v_float32x4 m2 = vx * vx + vy * vy;
         const cv::v_float32x4 keep = (cv::v_load(v + x) != zero) & (m2 > floor4) & (m2 > zero);
-        const cv::v_float32x4 inv_m = one / cv::v_sqrt(cv::v_max(m2, tiny));
+        const cv::v_float32x4 inv_m = cv::v_invsqrt(cv::v_max(m2, tiny));
         const cv::v_float32x4 inv = cv::v_select(keep, cv::v_min(cap4 * inv_m, inv_med4), zero);
         cv::v_store(c + x, vx * inv);
         cv::v_store(s + x, vy * inv);
@@ -688,27 +935,45 @@ ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& bas
   Status flat = CheckFlat(tfield, "template", reason);
   if (flat == Status::kOk) flat = CheckFlat(bfield, "base", reason);
   if (flat != Status::kOk) return flat;
+  // Only the parts where valid template pixels can meet valid base pixels are transformed: the
+  // masks' bounding boxes (the fields are zero elsewhere, so no correlation changes, and the FFT
+  // gets smaller). The fields themselves are made on the whole parts as before (their noise
+  // estimate and median depend on the region).
+  const cv::Rect templ_valid =
+      templ_mask.empty() ? cv::Rect(0, 0, templ.cols, templ.rows) : cv::boundingRect(templ_mask);
+  const cv::Rect base_valid =
+      base_mask.empty() ? cv::Rect(0, 0, base.cols, base.rows) : cv::boundingRect(base_mask);
+  const cv::Rect templ_use = templ_roi & templ_valid &
+                             cv::Rect(cv::Point(base_valid.x - u1, base_valid.y - v1),
+                                      cv::Point(base_valid.br().x - u0, base_valid.br().y - v0));
+  const cv::Rect base_use = base_roi & base_valid &
+                            cv::Rect(cv::Point(templ_use.x + u0, templ_use.y + v0),
+                                     cv::Point(templ_use.br().x + u1, templ_use.br().y + v1));
+  if (templ_use.empty() || base_use.empty()) {
+    *reason = "no valid template pixel can meet a valid base pixel within the search radius";
+    return Status::kTooLittleOverlap;
+  }
 
   // c(j) = sum_p t(p) b'(p + j), j = 0..n-1, with the base shifted right by d so that j = 0 is
   // offset (u0, v0); the FFT size leaves no wrap-around for those j.
-  const int dx = base_roi.x - (templ_roi.x + u0), dy = base_roi.y - (templ_roi.y + v0);
-  const int fft_w =
-      cv::getOptimalDFTSize(std::max({2, templ_roi.width + nu - 1, dx + base_roi.width}));
-  const int fft_h =
-      cv::getOptimalDFTSize(std::max(templ_roi.height + nv - 1, dy + base_roi.height));
+  const int dx = base_use.x - (templ_use.x + u0), dy = base_use.y - (templ_use.y + v0);
+  const int fft_w = FastDftSize(std::max({2, templ_use.width + nu - 1, dx + base_use.width}));
+  const int fft_h = FastDftSize(std::max(templ_use.height + nv - 1, dy + base_use.height));
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const int n_fields = mask_out_flat ? 4 : 3;
-  auto transform = [&](const Field& f, const cv::Rect& place, cv::Mat* spectra) {
+  // use: the part of the field transformed (image pixels), placed at `at` in the FFT array.
+  auto transform = [&](const Field& f, const cv::Rect& use, cv::Point at, cv::Mat* spectra) {
     const cv::Mat* sources[4] = {&f.cos_w, &f.sin_w, &f.valid, &f.den_w};
+    const cv::Rect in_field = use - f.region.tl(), place(at, use.size());
     pad_.create(fft_h, fft_w, CV_32F);
     pad_.setTo(0.0f);
     for (int k = 0; k < n_fields; ++k) {
-      sources[k]->copyTo(pad_(place));  // Outside `place` stays zero.
+      (*sources[k])(in_field).copyTo(pad_(place));  // Outside `place` stays zero.
       ForwardDft(pad_, place.br().y, &spectra[k]);
     }
   };
-  transform(tfield, cv::Rect(cv::Point(0, 0), templ_roi.size()), spec_t_);
-  transform(bfield, cv::Rect(cv::Point(dx, dy), base_roi.size()), spec_b_);
+  transform(tfield, templ_use, cv::Point(0, 0), spec_t_);
+  transform(bfield, base_use, cv::Point(dx, dy), spec_b_);
   cv::mulSpectrums(spec_b_[0], spec_t_[0], spec_num_, 0, true);
   cv::mulSpectrums(spec_b_[1], spec_t_[1], spec_den_, 0, true);
   spec_num_ += spec_den_;
@@ -798,15 +1063,16 @@ ScdResult::Status ScdMatcher::FftSearch(const Filter& filter, const cv::Mat& bas
 
 bool ScdMatcher::Evaluate(const Field& tfield, const Field& bfield, cv::Point offset,
                           double* criterion, double* scd) const {
-  // Overlap in template pixels of the two fields.
-  const cv::Rect& t = tfield.region;
-  const cv::Rect both = t & (bfield.region - offset);
-  if (both.empty()) return false;
-  const cv::Rect in_t = both - t.tl();
-  const cv::Rect in_b = both + offset - bfield.region.tl();
+  // Template samples over the base field, and the base element of the first.
+  const AxisOverlap ox = OverlapOnAxis(tfield.region.x, tfield.cos_w.cols, tfield.step,
+                                       bfield.region.x, bfield.cos_w.cols, offset.x);
+  const AxisOverlap oy = OverlapOnAxis(tfield.region.y, tfield.cos_w.rows, tfield.step,
+                                       bfield.region.y, bfield.cos_w.rows, offset.y);
+  if (ox.count == 0 || oy.count == 0) return false;
   double num = 0.0, den = 0.0;
   FieldSums(tfield.cos_w, tfield.sin_w, tfield.den_w, bfield.cos_w, bfield.sin_w, bfield.den_w,
-            in_t, in_b, &num, &den);
+            cv::Rect(ox.first, oy.first, ox.count, oy.count), cv::Point(ox.b_first, oy.b_first),
+            tfield.step, &num, &den);
   if (!(den >= 0.5)) return false;
   *scd = std::clamp(num / den, -1.0, 1.0);
   *criterion =
@@ -820,42 +1086,66 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
   const Field& base = fine_scratch_.base_field;
   const Field& templ =
       options_.magnitude_weight_cap > 0.0 ? fine_scratch_.templ_unit : fine_scratch_.templ_field;
-  const cv::Rect both = templ.region & (base.region - offset);
-  if (both.empty()) return kNone;
-  const cv::Rect in_t = both - templ.region.tl();
-  const cv::Rect in_b = both + offset - base.region.tl();
-  // shifted(x) = gradient(x + shift) on the overlap only (gx, gy cover base.region); reads past
-  // the gradients' edge are clamped, and reach at most 2 px in, where Refine's margin keeps the
-  // overlap out.
-  CubicShiftRect(fine_scratch_.gx, in_b, shift, &shifted_gx_, &shift_tmp_);
-  CubicShiftRect(fine_scratch_.gy, in_b, shift, &shifted_gy_, &shift_tmp_);
+  const int step = templ.step;
+  const AxisOverlap ox = OverlapOnAxis(templ.region.x, templ.cos_w.cols, step, base.region.x,
+                                       base.valid.cols, offset.x);
+  const AxisOverlap oy = OverlapOnAxis(templ.region.y, templ.cos_w.rows, step, base.region.y,
+                                       base.valid.rows, offset.y);
+  if (ox.count == 0 || oy.count == 0) return kNone;
+  const cv::Rect in_t(ox.first, oy.first, ox.count, oy.count);
+  const cv::Point b0(ox.b_first, oy.b_first);
+  // shifted(k) = gradient(b0 + step k + shift) at the template's samples only (gx, gy cover
+  // base.region); reads past the gradients' edge are clamped, and reach at most 2 px in, where
+  // Refine's margin keeps the overlap out.
+  // The vertical passes are kept for the next call with the same shift.y (the refit's centre
+  // and x neighbours share one).
+  ShiftRows& rows = shift_rows_;
+  if (!(rows.valid && rows.origin == b0 && rows.count == in_t.size() && rows.step == step &&
+        rows.shift_y == shift.y())) {
+    CubicRows(fine_scratch_.gx, b0, in_t.size(), step, shift.y(), &rows.gx);
+    CubicRows(fine_scratch_.gy, b0, in_t.size(), step, shift.y(), &rows.gy);
+    rows.valid = true;
+    rows.origin = b0;
+    rows.count = in_t.size();
+    rows.step = step;
+    rows.shift_y = shift.y();
+  }
+  CubicColumns(rows.gx, in_t.size(), step, shift.x(), &shifted_gx_);
+  CubicColumns(rows.gy, in_t.size(), step, shift.x(), &shifted_gy_);
   // Unit vectors of the shifted gradients (Normalise without weighting) dotted with the
   // template's on the fly: num = sum t . b / |b| over oriented base pixels.
   const float floor_sq = base.floor_sq;
   const bool mask_out_flat = options_.flat_handling == ScdFlatHandling::kMaskOut;
   const bool soft = options_.flat_handling == ScdFlatHandling::kSoft;
+  // De-interleaved loads of the base validity (step 2) read elements 2x .. 2x + 7.
+  const int simd_width =
+      step == 1 ? in_t.width : std::min(in_t.width, (base.valid.cols - b0.x) / 2 - 3);
   double num = 0.0, den = 0.0;
-  for (int y = 0; y < both.height; ++y) {
+  for (int y = 0; y < in_t.height; ++y) {
     const float* tc = templ.cos_w.ptr<float>(in_t.y + y) + in_t.x;
     const float* ts = templ.sin_w.ptr<float>(in_t.y + y) + in_t.x;
     const float* td = templ.den_w.ptr<float>(in_t.y + y) + in_t.x;
-    const float* v = base.valid.ptr<float>(in_b.y + y) + in_b.x;
+    const float* v = base.valid.ptr<float>(b0.y + step * y) + b0.x;
     const float* gx = shifted_gx_.ptr<float>(y);
     const float* gy = shifted_gy_.ptr<float>(y);
     float row_n = 0.0f, row_d = 0.0f;
     int x = 0;
 #if CV_SIMD128
-    if (!soft) {
+    if (!soft && step <= 2) {
       const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
       const cv::v_float32x4 floor4 = cv::v_setall_f32(floor_sq);
       const cv::v_float32x4 tiny = cv::v_setall_f32(1e-30f);
-      cv::v_float32x4 vn = zero, vd = zero;
-      for (; x + 4 <= both.width; x += 4) {
+      cv::v_float32x4 vn = zero, vd = zero, valid, odd;
+      for (; x + 4 <= simd_width; x += 4) {
         const cv::v_float32x4 bx = cv::v_load(gx + x), by = cv::v_load(gy + x);
-        const cv::v_float32x4 valid = cv::v_load(v + x);
+        if (step == 1) {
+          valid = cv::v_load(v + x);
+        } else {
+          cv::v_load_deinterleave(v + 2 * x, valid, odd);
+        }
         const cv::v_float32x4 m2 = bx * bx + by * by;
         const cv::v_float32x4 keep = (valid != zero) & (m2 > floor4) & (m2 > zero);
-        const cv::v_float32x4 inv = cv::v_select(keep, one / cv::v_sqrt(cv::v_max(m2, tiny)), zero);
+        const cv::v_float32x4 inv = cv::v_select(keep, cv::v_invsqrt(cv::v_max(m2, tiny)), zero);
         vn += (cv::v_load(tc + x) * bx + cv::v_load(ts + x) * by) * inv;
         vd += cv::v_load(td + x) * (mask_out_flat ? cv::v_select(keep, one, zero) : valid);
       }
@@ -863,15 +1153,16 @@ double ScdMatcher::EvaluateShifted(cv::Point offset, const Eigen::Vector2d& shif
       row_d = cv::v_reduce_sum(vd);
     }
 #endif
-    for (; x < both.width; ++x) {
+    for (; x < in_t.width; ++x) {
       const float bx = gx[x], by = gy[x];
-      const bool is_valid = v[x] != 0.0f;
+      const float vx = v[step * x];
+      const bool is_valid = vx != 0.0f;
       const float m2 = bx * bx + by * by;
       const bool oriented = is_valid && m2 > floor_sq && m2 > 0.0f;
       float inv = oriented ? 1.0f / std::sqrt(m2) : 0.0f;
       if (soft && is_valid) inv = std::sqrt(m2) / (m2 + floor_sq + 1e-30f);
       row_n += (tc[x] * bx + ts[x] * by) * inv;
-      row_d += td[x] * (mask_out_flat ? (oriented ? 1.0f : 0.0f) : v[x]);
+      row_d += td[x] * (mask_out_flat ? (oriented ? 1.0f : 0.0f) : vx);
     }
     num += row_n;
     den += row_d;
@@ -892,14 +1183,12 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   cv::Rect t_roi = templ_rect & (base_rect - start);
   if (!t_roi.empty() && (!templ_mask.empty() || !base_mask.empty())) {
     // Only the bounding box of the valid overlap: with irregular masks it is much smaller.
-    if (templ_mask.empty()) {
-      cv::compare(base_mask(t_roi + start), 0, tmp_, cv::CMP_NE);
-    } else if (base_mask.empty()) {
-      cv::compare(templ_mask(t_roi), 0, tmp_, cv::CMP_NE);
-    } else {
-      cv::bitwise_and(templ_mask(t_roi), base_mask(t_roi + start), tmp_);
-    }
-    t_roi = cv::boundingRect(tmp_) + t_roi.tl();
+    const cv::Mat t = templ_mask.empty() ? base_mask(t_roi + start) : templ_mask(t_roi);
+    const cv::Mat b = base_mask.empty() ? t : base_mask(t_roi + start);
+    int64_t both = 0;
+    cv::Rect box;
+    BothSet(t, b, &both, &box);
+    t_roi = box + t_roi.tl();
   }
   t_roi =
       cv::Rect(t_roi.x - grow, t_roi.y - grow, t_roi.width + 2 * grow, t_roi.height + 2 * grow) &
@@ -915,9 +1204,11 @@ ScdResult::Status ScdMatcher::Refine(const cv::Mat& base, const cv::Mat& base_ma
   double templ_noise = -1.0, base_noise = -1.0;
   const bool weighted = options_.magnitude_weight_cap > 0.0;
   ComputeField(fine_, templ, templ_mask, t_roi, &fine_scratch_, &fine_scratch_.templ_field,
-               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr);
+               &templ_noise, weighted ? &fine_scratch_.templ_unit : nullptr,
+               options_.fine_template_step);
   ComputeField(fine_, base, base_mask, b_roi, &fine_scratch_, &fine_scratch_.base_field,
                &base_noise);
+  shift_rows_.valid = false;  // New gradients: no vertical pass of EvaluateShifted holds.
 
   // Memoised criterion on a small grid around start.
   const int half = max_steps + 1, side = 2 * half + 1;
@@ -1132,8 +1423,9 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
   } else if (base_mask.empty()) {
     result.overlap_px = cv::countNonZero(templ_mask(in_templ));
   } else {
-    cv::bitwise_and(templ_mask(in_templ), base_mask(in_base), tmp_);
-    result.overlap_px = cv::countNonZero(tmp_);
+    int64_t both = 0;
+    BothSet(templ_mask(in_templ), base_mask(in_base), &both, nullptr);
+    result.overlap_px = static_cast<double>(both);
   }
   result.overlap_fraction = result.overlap_px / templ_valid_px;
 

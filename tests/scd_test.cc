@@ -3,7 +3,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <opencv2/core/eigen.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -65,6 +67,8 @@ TEST(ScdTest, RecoversIntegerShiftsExactly) {
     const Eigen::Vector2d predicted = p.truth + Eigen::Vector2d(23.0, -31.0);
     const ScdResult r = matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(), predicted, 64.0);
     ASSERT_TRUE(r.ok()) << r.reason;
+    std::printf("SCD integer shift (%d, %d): error %.3f px, score %.3f\n", d.x, d.y,
+                Error(r, p.truth), r.score);
     EXPECT_LT(Error(r, p.truth), 0.1) << "shift " << d;
     EXPECT_GT(r.score, 0.5);  // Under-floor pixels count as overlap with no orientation.
     EXPECT_NEAR(r.overlap_px, (a & b).area(), 0.5);
@@ -88,6 +92,7 @@ TEST(ScdTest, RecoversSubPixelShifts) {
       ASSERT_TRUE(r.ok()) << file << ": " << r.reason;
       worst = std::max(worst, Error(r, p.truth));
     }
+    std::printf("SCD sub-pixel, %s: worst error %.3f px of 8 shifts\n", file, worst);
     EXPECT_LT(worst, 0.1) << file;
   }
 }
@@ -109,6 +114,9 @@ TEST(ScdTest, EightAndSixteenBitAgreeWithFloat) {
   const ScdResult r16 =
       matcher.Match(base16, cv::Mat(), templ16, cv::Mat(), p.truth + Eigen::Vector2d(9, 9), 32);
   ASSERT_TRUE(r32.ok() && r8.ok() && r16.ok()) << r32.reason << r8.reason << r16.reason;
+  std::printf("SCD 8/16 bit: float error %.3f px, 8-bit change %.3f, 16-bit change %.3f px\n",
+              Error(r32, p.truth), (r8.offset - r32.offset).norm(),
+              (r16.offset - r32.offset).norm());
   EXPECT_LT(Error(r32, p.truth), 0.1);
   EXPECT_LT((r8.offset - r32.offset).norm(), 0.05);
   EXPECT_LT((r16.offset - r32.offset).norm(), 0.05);
@@ -131,14 +139,18 @@ TEST(ScdTest, GainAndOffsetChangeTheResultByLessThanATenthOfAPixel) {
   ASSERT_TRUE(ref.ok()) << ref.reason;
   EXPECT_LT(Error(ref, p.truth), 0.25);
   const double range = 255.0;  // Applied in float: no clipping, a pure gain/offset change.
+  double worst_change = 0.0;
   for (double gain : {0.5, 0.8, 1.3, 2.0}) {
     for (double offset : {-0.3, 0.0, 0.3}) {
       const cv::Mat changed = p.templ * gain + offset * range;
       const ScdResult r = matcher.Match(p.base, cv::Mat(), changed, cv::Mat(), predicted, 64);
       ASSERT_TRUE(r.ok()) << r.reason;
       EXPECT_LT((r.offset - ref.offset).norm(), 0.1) << "gain " << gain << " offset " << offset;
+      worst_change = std::max(worst_change, (r.offset - ref.offset).norm());
     }
   }
+  std::printf("SCD gain/offset: error %.3f px, largest change %.3f px of 12\n", Error(ref, p.truth),
+              worst_change);
 }
 
 // Footprint of a warped frame: a convex quadrilateral filling most of `size`.

@@ -81,6 +81,13 @@ struct ScdOptions {
   // refined at full resolution (gradient_sigma_px) by direct SCD evaluation around it.
   int pyramid_factor = 4;
   double coarse_gradient_sigma_px = 1.0;
+  // The full-resolution refinement (integer climb, sub-pixel fits, reported score) takes the
+  // template's gradients on every fine_template_step-th row and column only (1 or 2); the base
+  // stays at every pixel, so all integer offsets are still reachable. After the
+  // gradient_sigma_px pre-blur the gradients are band-limited far below the half-rate
+  // sampling's Nyquist frequency, so the criterion loses little (docs/matching.md) at about a
+  // quarter of the template fields and dot products.
+  int fine_template_step = 2;
   // Search radius above this is refused (kBadInput) to bound time and memory.
   double max_search_radius_px = 1024.0;
 
@@ -135,6 +142,7 @@ class IRMOSAIC_EXPORT ScdMatcher {
   // Orientation field of an image region: weighted unit gradient, denominator weight, validity.
   struct Field {
     cv::Rect region;  // in its image's pixels
+    int step = 1;     // plane sample (i, j) is pixel region.tl() + step * (i, j)
     cv::Mat cos_w, sin_w, den_w, valid;
     double valid_px = 0.0, oriented_px = 0.0;
     float floor_sq = 0.0f;  // squared gradient noise floor used
@@ -152,10 +160,11 @@ class IRMOSAIC_EXPORT ScdMatcher {
     Field templ_unit;  // unit-vector field of the template (fine level, weighting on)
   };
   // *noise_std: the image noise std to use, or negative to estimate it (then written back).
-  // unit (optional): also the unit-vector field of the same gradients.
+  // unit (optional): also the unit-vector field of the same gradients. step: sampling of the
+  // field's planes (Field::step).
   void ComputeField(const Filter& filter, const cv::Mat& image, const cv::Mat& mask,
                     const cv::Rect& roi, Scratch* scratch, Field* out, double* noise_std,
-                    Field* unit = nullptr);
+                    Field* unit = nullptr, int step = 1);
   // Masked SCD over the integer window [lo, hi] (inclusive) by FFT; kOk or a failure in result.
   Status FftSearch(const Filter& filter, const cv::Mat& base, const cv::Mat& base_mask,
                    const cv::Mat& templ, const cv::Mat& templ_mask, double templ_valid_px,
@@ -164,7 +173,8 @@ class IRMOSAIC_EXPORT ScdMatcher {
   Status Refine(const cv::Mat& base, const cv::Mat& base_mask, const cv::Mat& templ,
                 const cv::Mat& templ_mask, cv::Point start, cv::Point lo, cv::Point hi,
                 int max_steps, Peak* peak, std::string* reason);
-  // Criterion and SCD at one offset from the fine fields (false when nothing overlaps).
+  // Criterion and SCD at one offset from the fine fields (false when nothing overlaps); the
+  // template field may be sampled at a step, the base field is at every pixel.
   bool Evaluate(const Field& templ_field, const Field& base_field, cv::Point offset,
                 double* criterion, double* scd) const;
   // Criterion at integer `offset` of the template's unit field against the fine base gradients
@@ -183,11 +193,20 @@ class IRMOSAIC_EXPORT ScdMatcher {
   Filter fine_, coarse_;
   // Scratch, reused between calls.
   Scratch coarse_scratch_, fine_scratch_, shift_scratch_;
-  cv::Mat shifted_gx_, shifted_gy_, shift_tmp_;
+  cv::Mat shifted_gx_, shifted_gy_;
+  // Vertical passes of the last resampling (EvaluateShifted), reused while its key holds.
+  struct ShiftRows {
+    bool valid = false;
+    cv::Point origin;
+    cv::Size count;
+    int step = 1;
+    double shift_y = 0.0;
+    cv::Mat gx, gy;
+  } shift_rows_;
   std::vector<uint8_t> erode_pad_;  // row scratch of the erosion and the reduction
   std::vector<float> reduce_sum_;
   std::vector<float> magnitudes_;  // sample for the median gradient magnitude
-  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_, tmp_;
+  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
   std::map<std::tuple<int, int, int, int>, cv::Ptr<cv::hal::DFT2D>> dft_plans_;
