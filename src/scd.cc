@@ -29,6 +29,17 @@ bool IsSupportedMask(const cv::Mat& mask, const cv::Mat& image) {
   return mask.empty() || (mask.type() == CV_8UC1 && mask.size() == image.size());
 }
 
+#if CV_SIMD128
+// Four bytes widened to four 32-bit lanes. OpenCV's v_load_expand_q reads its 4 bytes through an
+// int pointer, undefined (UBSan: misaligned load) at the unaligned addresses a mask row gives;
+// an aligned copy keeps it defined and compiles to the same load.
+inline cv::v_uint32x4 LoadExpand4(const uint8_t* p) {
+  uint32_t word;
+  std::memcpy(&word, p, sizeof word);
+  return cv::v_load_expand_q(reinterpret_cast<const uchar*>(&word));
+}
+#endif
+
 // 1D full convolution of two small kernels.
 std::vector<double> Convolve(const std::vector<double>& a, const std::vector<double>& b) {
   std::vector<double> out(a.size() + b.size() - 1, 0.0);
@@ -68,14 +79,8 @@ double EstimateNoiseStd(const cv::Mat& image_f32, const cv::Mat& valid_u8) {
                                 two * (cv::v_load(a + x) + cv::v_load(c + x) +
                                        cv::v_load(b + x - 1) + cv::v_load(b + x + 1)) +
                                 four * cv::v_load(b + x);
-      // OpenCV's v_load_expand_q reads its 4 bytes through an int pointer, which UBSan rightly
-      // calls a misaligned load at m + x; handing it an aligned copy keeps the code defined.
-      uint32_t mask4;
-      std::memcpy(&mask4, m + x, sizeof mask4);
-      const cv::v_float32x4 w =
-          cv::v_select(cv::v_cvt_f32(cv::v_reinterpret_as_s32(
-                           cv::v_load_expand_q(reinterpret_cast<const uchar*>(&mask4)))) != zero,
-                       one, zero);
+      const cv::v_float32x4 w = cv::v_select(
+          cv::v_cvt_f32(cv::v_reinterpret_as_s32(LoadExpand4(m + x))) != zero, one, zero);
       vsum += w * cv::v_abs(l);
       vcount += w;
     }
@@ -316,7 +321,7 @@ void LoadValidFilled(const cv::Mat& image, const cv::Mat& mask, cv::Mat* f32, cv
       for (int k = 0; k < 4; ++k) {
         const cv::v_float32x4 v = cv::v_load(in + x + 4 * k);
         const cv::v_uint32x4 finite = (cv::v_reinterpret_as_u32(v) & exponent) != exponent;
-        const cv::v_uint32x4 set = m ? cv::v_load_expand_q(m + x + 4 * k) != zero_u : all_u;
+        const cv::v_uint32x4 set = m ? LoadExpand4(m + x + 4 * k) != zero_u : all_u;
         good[k] = finite & set;
         cv::v_store(out + x + 4 * k, cv::v_select(cv::v_reinterpret_as_f32(finite), v, zero));
         const cv::v_float32x4 g = cv::v_reinterpret_as_f32(good[k]);
@@ -350,7 +355,7 @@ void LoadValidFilled(const cv::Mat& image, const cv::Mat& mask, cv::Mat* f32, cv
     const cv::v_uint32x4 zero_u = cv::v_setzero_u32();
     const cv::v_float32x4 fill4 = cv::v_setall_f32(fill);
     for (; x + 4 <= w; x += 4) {
-      const cv::v_float32x4 g = cv::v_reinterpret_as_f32(cv::v_load_expand_q(ok + x) != zero_u);
+      const cv::v_float32x4 g = cv::v_reinterpret_as_f32(LoadExpand4(ok + x) != zero_u);
       cv::v_store(out + x, cv::v_select(g, cv::v_load(out + x), fill4));
     }
 #endif
