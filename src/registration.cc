@@ -2,6 +2,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
@@ -49,6 +50,18 @@ std::string Figure(const char* what, double value, const char* relation, double 
   return s.str();
 }
 
+// The homography refinements work in coordinates centred on the overlap and scaled by this many
+// pixels, so the 8 parameters have comparable magnitudes.
+constexpr double kScale = 100.0;
+
+// Prior standard deviations of the 8 homography parameters in those coordinates, in the order
+// (h00 - 1, h01, h02, h10, h11 - 1, h12, h20, h21): the linear part near identity, the
+// translations free (0: no prior), the perspective terms near zero.
+std::array<double, 8> DistortionPriorSigma(double linear_sigma, double perspective_sigma_per_px) {
+  const double perspective = perspective_sigma_per_px * kScale;
+  return {linear_sigma, linear_sigma, 0, linear_sigma, linear_sigma, 0, perspective, perspective};
+}
+
 // Gauss-Newton refinement of a homography on the inlier tie points with a Gaussian prior on
 // its distortion (linear part near identity, perspective terms near zero), in coordinates
 // centred on the tie points' centroid and scaled by 100 px. Tie points in a narrow overlap
@@ -57,7 +70,6 @@ std::string Figure(const char* what, double value, const char* relation, double 
 Eigen::Matrix3d RefineWithPrior(const std::vector<TiePoint>& ties, const Eigen::Matrix3d& start,
                                 double point_sigma_px, double linear_sigma,
                                 double perspective_sigma_per_px) {
-  constexpr double kScale = 100.0;
   Eigen::Vector2d centre = Eigen::Vector2d::Zero();
   int n = 0;
   for (const TiePoint& t : ties) {
@@ -82,14 +94,8 @@ Eigen::Matrix3d RefineWithPrior(const std::vector<TiePoint>& ties, const Eigen::
   Eigen::Matrix<double, 8, 1> x;
   x << h(0, 0) - 1, h(0, 1), h(0, 2), h(1, 0), h(1, 1) - 1, h(1, 2), h(2, 0), h(2, 1);
   const double point_sigma = point_sigma_px / kScale;
-  const double prior_sigma[8] = {linear_sigma,
-                                 linear_sigma,
-                                 0,
-                                 linear_sigma,
-                                 linear_sigma,
-                                 0,
-                                 perspective_sigma_per_px * kScale,
-                                 perspective_sigma_per_px * kScale};
+  const std::array<double, 8> prior_sigma =
+      DistortionPriorSigma(linear_sigma, perspective_sigma_per_px);
   for (int iteration = 0; iteration < 10; ++iteration) {
     Eigen::Matrix<double, 8, 8> normal = Eigen::Matrix<double, 8, 8>::Zero();
     Eigen::Matrix<double, 8, 1> rhs = Eigen::Matrix<double, 8, 1>::Zero();
@@ -432,7 +438,6 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   // All patches share one homography: their 21 filter equations each are stacked into one
   // Gauss-Newton system in its 8 parameters (plus the distortion prior), with Cauchy weights
   // per patch against outliers. Many patches average the noise that defeats single ones.
-  constexpr double kScale = 100.0;
   JointFit fit;
   const int r = lsm_.patch_radius_px();
   std::vector<Eigen::Vector2d> points;
@@ -474,14 +479,8 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
     m->col(0) = 0.5 * (at(1, 0) - at(-1, 0));
     m->col(1) = 0.5 * (at(0, 1) - at(0, -1));
   };
-  const double prior_sigma[8] = {options_.prior_linear_sigma,
-                                 options_.prior_linear_sigma,
-                                 0,
-                                 options_.prior_linear_sigma,
-                                 options_.prior_linear_sigma,
-                                 0,
-                                 options_.prior_perspective_sigma_per_px * kScale,
-                                 options_.prior_perspective_sigma_per_px * kScale};
+  const std::array<double, 8> prior_sigma =
+      DistortionPriorSigma(options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
   std::vector<Eigen::Matrix<double, Eigen::Dynamic, 8>> rows;
   std::vector<Eigen::VectorXd> rhs;
   std::vector<double> energy;
@@ -685,7 +684,6 @@ FineRegistrar::DenseFit FineRegistrar::DenseRefine(const cv::Mat& base_mask,
   // iteration resamples the base (bicubic) at the homography's image of the samples.
   // Unknowns: 8 homography parameters in coordinates centred on the overlap and scaled by
   // 100 px (as the distortion prior), a gain and an offset.
-  constexpr double kScale = 100.0;
   DenseFit fit;
   Eigen::Matrix3d h = *homography;
   const cv::Rect2d box = OverlapBox(h, base_f_.size(), templ_f_.size());
@@ -738,14 +736,8 @@ FineRegistrar::DenseFit FineRegistrar::DenseRefine(const cv::Mat& base_mask,
                                       {box.x + box.width, box.y},
                                       {box.x + box.width, box.y + box.height},
                                       {box.x, box.y + box.height}};
-  const double prior_sigma[8] = {options_.prior_linear_sigma,
-                                 options_.prior_linear_sigma,
-                                 0,
-                                 options_.prior_linear_sigma,
-                                 options_.prior_linear_sigma,
-                                 0,
-                                 options_.prior_perspective_sigma_per_px * kScale,
-                                 options_.prior_perspective_sigma_per_px * kScale};
+  const std::array<double, 8> prior_sigma =
+      DistortionPriorSigma(options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px);
   using Vector10 = Eigen::Matrix<double, 10, 1>;
   using Matrix10 = Eigen::Matrix<double, 10, 10>;
   constexpr int kStride = 11;  // Per sample: x, y (full-res template px), T, 8 geometric terms.
