@@ -41,6 +41,116 @@ PixelType PixelTypeOf(const cv::Mat& image) {
   }
 }
 
+// Version of the resume record (application state "fusion"); a newer one is refused.
+constexpr int kResumeRecordVersion = 1;
+
+// One frame of the resume record. Numbers are written so that they read back exactly
+// (nlohmann::json writes the shortest text that round-trips a double).
+nlohmann::json PlacementRecord(const FramePlacement& p) {
+  std::vector<double> h(9);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) h[3 * r + c] = p.mosaic_from_image(r, c);
+  return {{"index", p.index},
+          {"time_s", p.time_s},
+          {"h", h},
+          {"pos_only", p.pos_only},
+          {"inliers", p.inliers},
+          {"residual_px", p.residual_px},
+          {"gain", p.gain},
+          {"offset", p.offset},
+          {"optimized", p.optimized_times},
+          {"neighbours", p.neighbours}};
+}
+
+// Reads the resume record a run stored under "fusion" in its application state; throws
+// InputError naming the manifest, the field and the frame for anything missing, of the wrong
+// type or not finite (a damaged store must not place frames at NaN).
+FusionResumeState ParseResumeRecord(const nlohmann::json& doc, const std::string& manifest) {
+  const std::string fix =
+      "the store's resume record is damaged: start again with --overwrite (the published "
+      "tiles stay readable as they are)";
+  auto fail = [&](const std::string& field, const std::string& problem) {
+    throw InputError({manifest, 0, 0, "application.fusion." + field}, problem, fix);
+  };
+  auto integer = [&](const nlohmann::json& j, const char* key, const std::string& where) {
+    if (!j.contains(key) || !j[key].is_number_integer()) {
+      fail(where + key, std::string(key) + " is missing or not an integer");
+    }
+    return j[key].get<int64_t>();
+  };
+  auto finite = [&](const nlohmann::json& j, const char* key, const std::string& where,
+                    const std::string& what) {
+    if (!j.contains(key) || !j[key].is_number() || !std::isfinite(j[key].get<double>())) {
+      fail(where + key, what + " is not a finite number");
+    }
+    return j[key].get<double>();
+  };
+  if (!doc.is_object()) fail("", "the resume record is not a JSON object");
+  const int64_t version = integer(doc, "version", "");
+  if (version > kResumeRecordVersion) {
+    throw InputError({manifest, 0, 0, "application.fusion.version"},
+                     "the resume record has version " + std::to_string(version) +
+                         ", newer than this irmosaic reads (" +
+                         std::to_string(kResumeRecordVersion) + ")",
+                     "resume with the irmosaic that wrote the store");
+  }
+  FusionResumeState state;
+  if (!doc.contains("frames") || !doc["frames"].is_array()) fail("frames", "not an array");
+  const nlohmann::json& frames = doc["frames"];
+  for (size_t k = 0; k < frames.size(); ++k) {
+    const nlohmann::json& f = frames[k];
+    const std::string where = "frames[" + std::to_string(k) + "].";
+    if (!f.is_object()) fail(where, "not an object");
+    FramePlacement p;
+    p.index = integer(f, "index", where);
+    const std::string frame = "frame " + std::to_string(p.index) + "'s ";
+    p.time_s = finite(f, "time_s", where, frame + "time");
+    if (!f.contains("h") || !f["h"].is_array() || f["h"].size() != 9) {
+      fail(where + "h", frame + "stored placement is not 9 numbers");
+    }
+    for (int i = 0; i < 9; ++i) {
+      const nlohmann::json& v = f["h"][static_cast<size_t>(i)];
+      if (!v.is_number() || !std::isfinite(v.get<double>())) {
+        fail(where + "h", frame + "stored placement is not finite");
+      }
+      p.mosaic_from_image(i / 3, i % 3) = v.get<double>();
+    }
+    if (std::abs(p.mosaic_from_image.determinant()) < 1e-12) {
+      fail(where + "h", frame + "stored placement is singular");
+    }
+    p.pos_mosaic_from_image = p.mosaic_from_image;
+    if (!f.contains("pos_only") || !f["pos_only"].is_boolean()) {
+      fail(where + "pos_only", frame + "pos_only is missing or not true/false");
+    }
+    p.pos_only = f["pos_only"].get<bool>();
+    p.inliers = static_cast<int>(integer(f, "inliers", where));
+    p.residual_px = finite(f, "residual_px", where, frame + "residual");
+    p.gain = finite(f, "gain", where, frame + "gain");
+    p.offset = finite(f, "offset", where, frame + "offset");
+    p.optimized_times = static_cast<int>(integer(f, "optimized", where));
+    if (f.contains("neighbours")) {
+      if (!f["neighbours"].is_array()) fail(where + "neighbours", "not an array");
+      for (const nlohmann::json& n : f["neighbours"]) {
+        if (!n.is_number_integer()) fail(where + "neighbours", "not an array of frame indices");
+        p.neighbours.push_back(n.get<int64_t>());
+      }
+    }
+    state.placements.push_back(std::move(p));
+  }
+  state.held_from = integer(doc, "held_from", "");
+  state.frames_since_solve = integer(doc, "frames_since_solve", "");
+  state.solving_through = integer(doc, "solving_through", "");
+  if (!doc.contains("pairs") || !doc["pairs"].is_array()) fail("pairs", "not an array");
+  for (const nlohmann::json& p : doc["pairs"]) {
+    if (!p.is_array() || p.size() != 3 || !p[0].is_number_integer() || !p[1].is_number_integer() ||
+        !p[2].is_number() || !std::isfinite(p[2].get<double>())) {
+      fail("pairs", "a pair is not [base, template, weight] with a finite weight");
+    }
+    state.pairs.push_back({p[0].get<int64_t>(), p[1].get<int64_t>(), p[2].get<double>()});
+  }
+  return state;
+}
+
 // Undistorted image pixel of an orthoimage pixel.
 Eigen::Vector2d ImageFromOrtho(const OrthoImage& ortho, const Eigen::Vector2d& p) {
   return ApplyHomography(ortho.ortho_from_image.inverse(), p);
@@ -220,20 +330,24 @@ class Mosaicker::Impl : public MosaicSink {
                                                            ground_, options_.pos_position_sigma_m,
                                                            options_.pos_attitude_sigma_deg, 0.2);
     if (!store_) OpenStore(PixelTypeOf(image));
+    // A frame the resume record holds is a replay: counted when the record was read, and
+    // nothing to publish (the store has it already).
+    const bool recorded = resume_recorded_ && index <= resumed_last_index_;
     result.placement = fusion_->Push(std::move(frame));
     result.status = PushResult::Status::kPlaced;
-    last_index_ = index;
-    Count(&MosaickerSummary::frames_placed);
-    if (result.placement.pos_only) {
-      Count(&MosaickerSummary::frames_pos_only);
-    } else {
-      Count(&MosaickerSummary::frames_registered);
+    last_index_ = std::max(last_index_, index);
+    if (!recorded) {
+      Count(&MosaickerSummary::frames_placed);
+      Count(result.placement.pos_only ? &MosaickerSummary::frames_pos_only
+                                      : &MosaickerSummary::frames_registered);
     }
     // Publish on a clock: each frame waits at most one interval plus the writer's work.
-    pending_.push_back({arrival, 0});
-    if (Clock::now() - last_publish_ >=
-        std::chrono::duration<double>(options_.publish_interval_s)) {
-      RequestPublishQuiet();
+    if (!recorded && !replay_) {
+      pending_.push_back({arrival, 0});
+      if (Clock::now() - last_publish_ >=
+          std::chrono::duration<double>(options_.publish_interval_s)) {
+        RequestPublishQuiet();
+      }
     }
     CollectLatencies();
     NotifyPublished();
@@ -247,8 +361,7 @@ class Mosaicker::Impl : public MosaicSink {
 
   void RequestPublishQuiet() {
     if (!store_) return;
-    nlohmann::json state = {{"last_index", last_index_}};
-    store_->SetApplicationState(state.dump());
+    store_->SetApplicationState(ApplicationState());
     const int64_t generation = store_->RequestPublish();
     for (auto& p : pending_) {
       if (p.second == 0) p.second = generation;
@@ -371,6 +484,8 @@ class Mosaicker::Impl : public MosaicSink {
 
   void SetReplay(bool replay) { replay_ = replay; }
   int64_t resumed_last_index() const { return resumed_last_index_; }
+  int64_t resume_replay_from() const { return replay_from_; }
+  const std::string& resume_warning() const { return resume_warning_; }
   TileStore* store() { return store_.get(); }
 
   // MosaicSink.
@@ -422,6 +537,33 @@ class Mosaicker::Impl : public MosaicSink {
     return text.str();
   }
 
+  // What `--resume` needs, published with every generation: the last frame painted and the
+  // resume record (every placement and the optimizer's state, docs/store.md). Frames that left
+  // the fusion's window never change again, so their text is made once and kept.
+  std::string ApplicationState() {
+    const FusionResumeState state = fusion_->ResumeState(frozen_record_slots_);
+    std::string moving;
+    for (size_t k = 0; k < state.placements.size(); ++k) {
+      std::string& text = state.first_slot + k < state.frozen_slots ? frozen_record_ : moving;
+      if (!text.empty()) text += ",";
+      text += PlacementRecord(state.placements[k]).dump();
+    }
+    frozen_record_slots_ = std::max(frozen_record_slots_, state.frozen_slots);
+    nlohmann::json pairs = nlohmann::json::array();
+    for (const FusionResumeState::Pair& p : state.pairs)
+      pairs.push_back({p.base, p.templ, p.weight});
+    const nlohmann::json fusion = {{"version", kResumeRecordVersion},
+                                   {"held_from", state.held_from},
+                                   {"frames_since_solve", state.frames_since_solve},
+                                   {"solving_through", state.solving_through},
+                                   {"pairs", pairs}};
+    std::string text = fusion.dump();  // {"frames_since_solve":..,...}: frames go in last.
+    text.pop_back();
+    text += ",\"frames\":[" + frozen_record_ +
+            (frozen_record_.empty() || moving.empty() ? "" : ",") + moving + "]}";
+    return "{\"last_index\":" + std::to_string(last_index_) + ",\"fusion\":" + text + "}";
+  }
+
   void OpenStore(PixelType type) {
     TileStoreOptions store_options;
     store_options.path = options_.store_path;
@@ -442,8 +584,40 @@ class Mosaicker::Impl : public MosaicSink {
         if (doc.is_object() && doc.contains("last_index") && doc["last_index"].is_number()) {
           resumed_last_index_ = doc["last_index"].get<int64_t>();
         }
+        if (resumed_last_index_ >= 0 && doc.contains("fusion")) {
+          Resume(ParseResumeRecord(
+              doc["fusion"],
+              (std::filesystem::path(options_.store_path) / "manifest.json").string()));
+        } else if (resumed_last_index_ >= 0) {
+          replay_from_ =
+              std::max<int64_t>(0, resumed_last_index_ - options_.fusion.window_frames + 1);
+          resume_warning_ = options_.store_path +
+                            " has no resume record (written by an irmosaic before 2026-12-01): "
+                            "the frames before " +
+                            std::to_string(replay_from_) +
+                            " keep their tiles but not their placements (they are missing from "
+                            "placements.json), and the replayed ones may differ from an "
+                            "uninterrupted run";
+        }
+      }
+      last_index_ = resumed_last_index_;
+    }
+  }
+
+  // Seeds the fusion from the store's resume record.
+  void Resume(FusionResumeState state) {
+    replay_from_ = state.ReplayFrom();
+    if (replay_from_ < 0) replay_from_ = resumed_last_index_ + 1;  // Nothing held: no replay.
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      for (const FramePlacement& p : state.placements) {
+        ++summary_.frames_placed;
+        ++(p.pos_only ? summary_.frames_pos_only : summary_.frames_registered);
       }
     }
+    fusion_->Resume(std::move(state));
+    // The frames that stay frozen are the record's own text from here on.
+    resume_recorded_ = true;
   }
 
   // Keeps a frame's POS orthoimage for registration to the frames after it (bounded).
@@ -571,6 +745,13 @@ class Mosaicker::Impl : public MosaicSink {
   bool replay_ = false;
   int64_t last_index_ = -1;
   int64_t resumed_last_index_ = -1;
+  int64_t replay_from_ = -1;      // First frame a resume pushes again (-1: not resuming).
+  bool resume_recorded_ = false;  // The fusion was seeded from the store's resume record.
+  std::string resume_warning_;
+  // Resume record text of the frames that left the fusion's window (they never change), and
+  // how many placements (push order) it holds.
+  std::string frozen_record_;
+  size_t frozen_record_slots_ = 0;
   Clock::time_point last_publish_ = Clock::now();
   mutable std::mutex mu_;
   std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;      // Kept part of clipped frames.
@@ -609,6 +790,8 @@ void Mosaicker::SetReplay(bool replay) { impl_->SetReplay(replay); }
 void Mosaicker::Finish() { impl_->Finish(); }
 void Mosaicker::RequestPublish() { impl_->RequestPublish(); }
 int64_t Mosaicker::resumed_last_index() const { return impl_->resumed_last_index(); }
+int64_t Mosaicker::resume_replay_from() const { return impl_->resume_replay_from(); }
+const std::string& Mosaicker::resume_warning() const { return impl_->resume_warning(); }
 MosaickerSummary Mosaicker::summary() const { return impl_->summary(); }
 std::vector<FramePlacement> Mosaicker::Placements() const { return impl_->Placements(); }
 void Mosaicker::WritePlacements(const std::string& path) const { impl_->WritePlacements(path); }

@@ -9,6 +9,8 @@
 
 #include <atomic>
 #include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <thread>
 
@@ -398,6 +400,76 @@ TEST(MosaickerApiTest, GenerationsWindowAndRecordsAgreeWithWhatGdalReads) {
                 options.fusion.rerender_threshold_px + 0.01)
           << "frame " << k << " corner " << c;
     }
+  }
+  fs::remove_all(options.store_path);
+}
+
+// The store records every published placement for --resume (docs/store.md, "Resume record"): a
+// resumed Mosaicker holds every frame of the killed run before it pushes anything, each exactly
+// where the store put it, and asks back only for the frames still in the optimizer's window.
+// A record whose placement is not finite (NaN is written as null) is refused, naming the store
+// and the frame, instead of placing frames at NaN.
+TEST(MosaickerApiTest, AResumedStoreHoldsEveryRecordedPlacementAndRefusesADamagedOne) {
+  FlightSimulator sim(Flight(24));
+  MosaickerOptions options;
+  options.store_path = TempStore("record");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  options.fusion.window_frames = 4;
+  std::vector<FramePlacement> written;
+  {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    for (int i = 0; i < sim.frame_count(); ++i) {
+      const SimFrame f = sim.Render(i);
+      ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed()) << i;
+    }
+    m.Finish();
+    written = m.Placements();
+  }
+  ASSERT_EQ(written.size(), 24u);
+  options.mode = TileStoreOptions::Mode::kResume;
+  {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    EXPECT_EQ(m.resumed_last_index(), 23);
+    EXPECT_TRUE(m.resume_warning().empty()) << m.resume_warning();
+    // Held at the end: the last 2 windows (frames 16-23) and the bases of their pairs, which
+    // reach back one sweep (8 frames) at most; the frames before are not pushed again.
+    std::printf("resume replays frames %lld-23\n", static_cast<long long>(m.resume_replay_from()));
+    EXPECT_GE(m.resume_replay_from(), 8);
+    EXPECT_LE(m.resume_replay_from(), 16);
+    const std::vector<FramePlacement> resumed = m.Placements();
+    ASSERT_EQ(resumed.size(), written.size());
+    double worst_px = 0.0;
+    for (size_t k = 0; k < written.size(); ++k) {
+      EXPECT_EQ(resumed[k].index, written[k].index);
+      for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 511)}) {
+        worst_px = std::max(worst_px, (ApplyHomography(resumed[k].mosaic_from_image, corner) -
+                                       ApplyHomography(written[k].mosaic_from_image, corner))
+                                          .norm());
+      }
+    }
+    std::printf("recorded placements read back: %zu frames, worst corner %.3g px\n", resumed.size(),
+                worst_px);
+    EXPECT_LT(worst_px, 1e-9);  // Read back exactly (shortest round-trip text).
+    EXPECT_EQ(m.summary().frames_placed, 24);
+  }
+  const std::string manifest = options.store_path + "/manifest.json";
+  nlohmann::json doc;
+  {
+    std::ifstream in(manifest);
+    doc = nlohmann::json::parse(in);
+  }
+  ASSERT_EQ(doc["application"]["fusion"]["frames"][5]["index"], 5);
+  doc["application"]["fusion"]["frames"][5]["h"][2] = nullptr;
+  std::ofstream(manifest) << doc.dump();
+  try {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    ADD_FAILURE() << "a record with a non-finite placement was accepted";
+  } catch (const InputError& e) {
+    const std::string message = e.what();
+    EXPECT_NE(message.find(manifest), std::string::npos) << message;
+    EXPECT_NE(message.find("frame 5's stored placement is not finite"), std::string::npos)
+        << message;
+    EXPECT_NE(message.find("--overwrite"), std::string::npos) << message;
   }
   fs::remove_all(options.store_path);
 }
