@@ -451,6 +451,25 @@ TEST(MosaickerApiTest, AResumedStoreHoldsEveryRecordedPlacementAndRefusesADamage
                 worst_px);
     EXPECT_LT(worst_px, 1e-9);  // Read back exactly (shortest round-trip text).
     EXPECT_EQ(m.summary().frames_placed, 24);
+    // The held frames pushed again (the replay) and a last solve: the finished run's solution
+    // again, within the 0.5 px (the solve restarts from it, with its pair weights).
+    for (int64_t i = m.resume_replay_from(); i < sim.frame_count(); ++i) {
+      const SimFrame f = sim.Render(static_cast<int>(i));
+      ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed()) << i;
+    }
+    m.Finish();
+    const std::vector<FramePlacement> again = m.Placements();
+    ASSERT_EQ(again.size(), written.size());
+    double moved_px = 0.0;
+    for (size_t k = 0; k < written.size(); ++k) {
+      for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 511)}) {
+        moved_px = std::max(moved_px, (ApplyHomography(again[k].mosaic_from_image, corner) -
+                                       ApplyHomography(written[k].mosaic_from_image, corner))
+                                          .norm());
+      }
+    }
+    std::printf("replayed and solved again: worst corner moved %.3g px\n", moved_px);
+    EXPECT_LT(moved_px, 0.5);
   }
   // Frames that left the window are in resume_frames.jsonl (one line each, push order), the
   // rest in the manifest. Either place refuses a placement that is not finite.
