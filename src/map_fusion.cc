@@ -5,6 +5,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
@@ -1018,7 +1019,9 @@ class MapFusion::Impl {
   std::deque<Pair> pairs_;
   std::vector<FramePlacement> placements_;
   int64_t frames_since_solve_ = 0;
-  int64_t frames_registered_ = 0, frames_pos_only_ = 0, pairs_tried_ = 0, pairs_ok_ = 0;
+  int64_t frames_registered_ = 0, frames_pos_only_ = 0;
+  // Counted by the producer outside mu_ (registration runs unlocked), read by stats() anywhere.
+  std::atomic<int64_t> pairs_tried_{0}, pairs_ok_{0};
   FusionStats stats_;
   // A solve between its snapshot and its publish, and the push-order span of its frames.
   bool solving_ = false;
