@@ -124,9 +124,14 @@ int RunRun(int argc, char** argv) {
   int64_t done = 0, bad_frames = 0;
   const int64_t resume_after = mosaicker.resumed_last_index();
   if (resume_after >= 0) {
-    // Rebuild the fusion state from the frames before the resume point, without painting.
-    source->SkipThrough(resume_after - options.fusion.window_frames);
-    std::cerr << "run: resuming after frame " << resume_after << "\n";
+    // The store recorded every placement; the frames still in the optimizer's window at the
+    // cut are pushed again (not painted) to rebuild its state, the older ones are not.
+    source->SkipThrough(mosaicker.resume_replay_from() - 1);
+    if (!mosaicker.resume_warning().empty()) {
+      std::cerr << "run: warning: " << mosaicker.resume_warning() << "\n";
+    }
+    std::cerr << "run: resuming after frame " << resume_after << " (replaying frames "
+              << mosaicker.resume_replay_from() << "-" << resume_after << ")\n";
     mosaicker.SetReplay(true);
   }
   SourceFrame frame;

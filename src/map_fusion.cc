@@ -5,13 +5,16 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <deque>
 #include <map>
 #include <mutex>
 #include <opencv2/imgproc.hpp>
 #include <set>
+#include <stdexcept>
 #include <thread>
 
 #include "irmosaic/frame_geometry.h"
@@ -206,6 +209,10 @@ class MapFusion::Impl {
             ? Eigen::Matrix<double, 10, 10>(Eigen::Matrix<double, 10, 10>::Identity() /
                                             options_.pos_sigma_px)
             : frame->data.prior_sqrt_information;
+    if (replaying_) {
+      if (frame->data.index <= replay_last_) return ReplayPush(frame);
+      EndReplay();
+    }
     FramePlacement placement;
     placement.index = frame->data.index;
     placement.time_s = frame->data.time_s;
@@ -251,13 +258,7 @@ class MapFusion::Impl {
         continue;
       }
       ++pairs_ok_;
-      SubsampleTies(&match);
-      Pair pair;
-      pair.base = neighbour;
-      pair.templ = frame;
-      pair.base_points = match.base_points;
-      pair.template_points = match.template_points;
-      pair.tie_sigma_px = std::max(options_.tie_sigma_px, match.tie_sigma_px);
+      Pair pair = MakePair(neighbour, frame, std::move(match));
       Eigen::Matrix3d h_base;
       double gain_base = 1.0, offset_base = 0.0;
       {
@@ -269,12 +270,7 @@ class MapFusion::Impl {
       for (size_t t = 0; t < pair.base_points.size(); ++t) {
         template_pts.push_back(pair.template_points[t]);
         mosaic_pts.push_back(ApplyHomography(h_base, pair.base_points[t]));
-        const double vb = PatchMean(neighbour->data.image, camera_, pair.base_points[t],
-                                    options_.tie_patch_radius_px);
-        const double vt = PatchMean(frame->data.image, camera_, pair.template_points[t],
-                                    options_.tie_patch_radius_px);
-        pair.base_values.push_back(vb);
-        pair.template_values.push_back(vt);
+        const double vb = pair.base_values[t], vt = pair.template_values[t];
         if (std::isfinite(vb) && std::isfinite(vt)) {
           radiometric.emplace_back(vt, gain_base * vb + offset_base);
         }
@@ -351,6 +347,7 @@ class MapFusion::Impl {
   }
 
   void Finish() {
+    EndReplay();
     StopThread();
     if (options_.optimize) SolveWindow(true);
   }
@@ -358,6 +355,65 @@ class MapFusion::Impl {
   std::vector<FramePlacement> Placements() const {
     std::lock_guard<std::mutex> lock(mu_);
     return placements_;
+  }
+
+  FusionResumeState ResumeState(size_t from_slot) const {
+    std::lock_guard<std::mutex> lock(mu_);
+    FusionResumeState state;
+    if (replaying_) {
+      // Nothing has moved since the record this run resumed from: hand it on unchanged.
+      state = resume_;
+    } else {
+      state.held_from = window_.empty() ? -1 : window_.front()->data.index;
+      for (const Pair& p : pairs_) {
+        state.pairs.push_back({p.base->data.index, p.templ->data.index, *p.weight});
+      }
+      state.frames_since_solve = frames_since_solve_;
+      state.solving_through = solving_ ? placements_[solving_last_slot_].index : -1;
+      // Frames that left the window never move again, unless a running solve still holds them
+      // (the foreground got more than a window ahead of it).
+      state.frozen_slots = window_.empty() ? placements_.size() : window_.front()->slot;
+      if (solving_) state.frozen_slots = std::min(state.frozen_slots, solving_first_slot_);
+    }
+    state.first_slot = std::min(from_slot, placements_.size());
+    state.placements.assign(placements_.begin() + static_cast<std::ptrdiff_t>(state.first_slot),
+                            placements_.end());
+    return state;
+  }
+
+  void Resume(FusionResumeState state) {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (!placements_.empty() || replaying_) {
+      throw std::invalid_argument("MapFusion::Resume: call it before the first Push");
+    }
+    if (state.first_slot != 0) {
+      throw std::invalid_argument("MapFusion::Resume: the state must hold every placement");
+    }
+    const int64_t replay_from = state.ReplayFrom();
+    std::set<int64_t> seen;
+    for (size_t slot = 0; slot < state.placements.size(); ++slot) {
+      FramePlacement& p = state.placements[slot];
+      if (!seen.insert(p.index).second) {
+        throw std::invalid_argument("MapFusion::Resume: frame " + std::to_string(p.index) +
+                                    " is recorded twice");
+      }
+      if (replay_from >= 0 && p.index >= replay_from) {
+        replay_slots_[p.index] = slot;
+      } else {
+        p.pos_mosaic_from_image = p.mosaic_from_image;  // Frozen; its POS placement unknown.
+      }
+      replay_last_ = std::max(replay_last_, p.index);
+      ++(p.pos_only ? frames_pos_only_ : frames_registered_);
+    }
+    for (const FusionResumeState::Pair& p : state.pairs) replay_pairs_.emplace(p.templ, p);
+    placements_ = std::move(state.placements);
+    state.placements.clear();
+    state.frozen_slots = placements_.size();
+    for (const auto& [index, slot] : replay_slots_) {
+      state.frozen_slots = std::min(state.frozen_slots, slot);
+    }
+    resume_ = std::move(state);
+    replaying_ = !replay_slots_.empty();
   }
 
   FusionStats stats() const {
@@ -389,6 +445,96 @@ class MapFusion::Impl {
     // solve to the next. Written by the solver only (one at a time), read by it.
     std::shared_ptr<double> weight = std::make_shared<double>(1.0);
   };
+
+  // A registered pair as the optimizer keeps it: at most max_ties_per_pair ties, with the
+  // patch means at both ends for the radiometric ties (NaN where a patch leaves the image).
+  Pair MakePair(const std::shared_ptr<Held>& base, const std::shared_ptr<Held>& templ,
+                PairMatch match) const {
+    SubsampleTies(&match);
+    Pair pair;
+    pair.base = base;
+    pair.templ = templ;
+    pair.base_points = std::move(match.base_points);
+    pair.template_points = std::move(match.template_points);
+    pair.tie_sigma_px = std::max(options_.tie_sigma_px, match.tie_sigma_px);
+    for (size_t t = 0; t < pair.base_points.size(); ++t) {
+      pair.base_values.push_back(
+          PatchMean(base->data.image, camera_, pair.base_points[t], options_.tie_patch_radius_px));
+      pair.template_values.push_back(PatchMean(templ->data.image, camera_, pair.template_points[t],
+                                               options_.tie_patch_radius_px));
+    }
+    return pair;
+  }
+
+  // A frame of the resumed record pushed again: re-registered to the neighbours the record
+  // names (the same pairs, the same ties, the recorded pair weights), held with its recorded
+  // placement; nothing is rendered, published or solved.
+  FramePlacement ReplayPush(const std::shared_ptr<Held>& frame) {
+    const int64_t index = frame->data.index;
+    const auto found = replay_slots_.find(index);
+    if (found == replay_slots_.end()) {
+      throw std::invalid_argument(
+          "MapFusion::Push: frame " + std::to_string(index) +
+          " is replayed (not newer than the resumed record) but the record does not hold it");
+    }
+    frame->slot = found->second;
+    std::vector<Pair> new_pairs;
+    std::string note;
+    const auto [begin, end] = replay_pairs_.equal_range(index);
+    for (auto it = begin; it != end; ++it) {
+      const auto base = replay_held_.find(it->second.base);
+      if (base == replay_held_.end()) {
+        note += "pair with " + std::to_string(it->second.base) + " not replayed; ";
+        continue;
+      }
+      PairMatch match = registrar_(base->second->data, frame->data);
+      ++pairs_tried_;
+      if (!match.ok) {
+        note += "replayed pair with " + std::to_string(it->second.base) +
+                " failed: " + match.reason + "; ";
+        continue;
+      }
+      ++pairs_ok_;
+      new_pairs.push_back(MakePair(base->second, frame, std::move(match)));
+      *new_pairs.back().weight = it->second.weight;
+    }
+    replay_held_[index] = frame;
+    std::lock_guard<std::mutex> lock(mu_);
+    FramePlacement& placement = placements_[frame->slot];
+    placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
+    placement.note += note;
+    frame->rendered = placement;
+    window_.push_back(frame);
+    for (Pair& p : new_pairs) pairs_.push_back(std::move(p));
+    return placement;
+  }
+
+  // After the last replayed frame: the window as it was at the record, the solve that was
+  // running then, and the optimizer's count towards its next solve.
+  void EndReplay() {
+    if (!replaying_) return;
+    size_t pending_slot = SIZE_MAX;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      replaying_ = false;
+      while (!window_.empty() && window_.front()->data.index < resume_.held_from) {
+        window_.pop_front();
+      }
+      const auto pending = replay_slots_.find(resume_.solving_through);
+      if (pending != replay_slots_.end()) pending_slot = pending->second;
+    }
+    replay_held_.clear();
+    replay_pairs_.clear();
+    replay_slots_.clear();
+    // The optimizer thread is idle (no frame counted towards a solve during the replay), so the
+    // interrupted solve runs here, on the same frames and from the same placements as then.
+    if (options_.optimize && pending_slot != SIZE_MAX) SolveWindow(false, pending_slot);
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      frames_since_solve_ = resume_.frames_since_solve;
+    }
+    if (options_.optimize) cv_.notify_one();
+  }
 
   // Keeps at most max_ties_per_pair tie points, evenly spread over the list (the registrar
   // returns them spread over the overlap), so the optimizer's cost per pair is bounded.
@@ -522,8 +668,9 @@ class MapFusion::Impl {
   }
 
   // One window solve: homographies by Ceres, gains by linear least squares; publishes and
-  // re-renders what moved.
-  void SolveWindow(bool final_solve) {
+  // re-renders what moved. `last_slot` (not SIZE_MAX: a resumed run's interrupted solve, on
+  // the producer thread) ends the window at that frame instead of the newest one.
+  void SolveWindow(bool final_solve, size_t last_slot = SIZE_MAX) {
     const auto start = Clock::now();
     const double start_cpu_ms = ThreadCpuMs();
     std::vector<std::shared_ptr<Held>> frames;
@@ -532,21 +679,30 @@ class MapFusion::Impl {
     std::map<size_t, Eigen::Matrix<double, 10, 10>> prior_info;
     {
       std::lock_guard<std::mutex> lock(mu_);
-      if (window_.size() < 2) return;
+      size_t end = window_.size();
+      if (last_slot != SIZE_MAX) {
+        end = 0;
+        while (end < window_.size() && window_[end]->slot <= last_slot) ++end;
+      }
+      if (end < 2) return;
       // The last window_frames frames, extended back (up to kMaxHeldWindows times that) to frames
       // no solve has refined yet, so a foreground running ahead never freezes unrefined frames.
-      size_t first = window_.size() > static_cast<size_t>(options_.window_frames)
-                         ? window_.size() - options_.window_frames
-                         : 0;
+      size_t first =
+          end > static_cast<size_t>(options_.window_frames) ? end - options_.window_frames : 0;
       while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
-             window_.size() - first <
-                 kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
+             end - first < kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
         --first;
       }
-      frames.assign(window_.begin() + static_cast<std::ptrdiff_t>(first), window_.end());
+      frames.assign(window_.begin() + static_cast<std::ptrdiff_t>(first),
+                    window_.begin() + static_cast<std::ptrdiff_t>(end));
       for (const Pair& p : pairs_) {
-        if (p.templ->slot >= frames.front()->slot) pairs.push_back(p);
+        if (p.templ->slot >= frames.front()->slot && p.templ->slot <= frames.back()->slot) {
+          pairs.push_back(p);
+        }
       }
+      solving_ = true;  // Until it publishes: a resume record taken meanwhile runs it again.
+      solving_first_slot_ = frames.front()->slot;
+      solving_last_slot_ = frames.back()->slot;
       for (const Pair& p : pairs) {
         current[p.base->slot] = placements_[p.base->slot];
         current[p.templ->slot] = placements_[p.templ->slot];
@@ -651,7 +807,6 @@ class MapFusion::Impl {
       ceres::Solve(solver, &problem, &summary);
     }
     reweight_pairs();
-    for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
     const double predicted_rmse_px = final_solve && options_.estimate_precision
                                          ? PredictedRmse(&problem, delta, current, first_slot)
                                          : 0.0;
@@ -682,6 +837,9 @@ class MapFusion::Impl {
     std::vector<std::pair<double, size_t>> candidates;  // (score, index in moved)
     {
       std::lock_guard<std::mutex> lock(mu_);
+      // Pair weights are published with the placements (ResumeState reads both).
+      for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
+      solving_ = false;
       for (const auto& f : frames) {
         FramePlacement& live = placements_[f->slot];
         // Frames placed while we solved were chained from the old placement of their
@@ -728,8 +886,10 @@ class MapFusion::Impl {
       stats_.rerendered_frames += static_cast<int64_t>(moved.size());
       if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
     }
+    Orthorectifier* ortho =
+        final_solve || last_slot != SIZE_MAX ? &foreground_ortho_ : &background_ortho_;
     for (const auto& [frame, placement] : moved) {
-      Render(*frame, placement, final_solve ? &foreground_ortho_ : &background_ortho_);
+      Render(*frame, placement, ortho);
       if (sink_) sink_->FramePlaced(placement);
     }
   }
@@ -859,9 +1019,32 @@ class MapFusion::Impl {
   std::deque<Pair> pairs_;
   std::vector<FramePlacement> placements_;
   int64_t frames_since_solve_ = 0;
-  int64_t frames_registered_ = 0, frames_pos_only_ = 0, pairs_tried_ = 0, pairs_ok_ = 0;
+  int64_t frames_registered_ = 0, frames_pos_only_ = 0;
+  // Counted by the producer outside mu_ (registration runs unlocked), read by stats() anywhere.
+  std::atomic<int64_t> pairs_tried_{0}, pairs_ok_{0};
   FusionStats stats_;
+  // A solve between its snapshot and its publish, and the push-order span of its frames.
+  bool solving_ = false;
+  size_t solving_first_slot_ = 0, solving_last_slot_ = 0;
+
+  // Resumed runs (Resume): the record, without its placements (they are placements_), and
+  // while its frames are pushed again, what the replay needs (producer thread only, except
+  // replaying_ which ResumeState reads under mu_).
+  FusionResumeState resume_;
+  bool replaying_ = false;
+  int64_t replay_last_ = -1;                                      // Newest recorded frame.
+  std::map<int64_t, size_t> replay_slots_;                        // Replayed frame -> its slot.
+  std::multimap<int64_t, FusionResumeState::Pair> replay_pairs_;  // Template -> its pairs.
+  std::map<int64_t, std::shared_ptr<Held>> replay_held_;          // Frames pushed again.
 };
+
+int64_t FusionResumeState::ReplayFrom() const {
+  int64_t from = held_from;
+  for (const Pair& p : pairs) {
+    if (p.base >= 0 && (from < 0 || p.base < from)) from = p.base;
+  }
+  return from;
+}
 
 MapFusion::MapFusion(FusionOptions options, CameraModel camera, PairRegisterFn registrar,
                      MosaicSink* sink)
@@ -870,6 +1053,10 @@ MapFusion::~MapFusion() = default;
 FramePlacement MapFusion::Push(FusionFrame frame) { return impl_->Push(std::move(frame)); }
 void MapFusion::Finish() { impl_->Finish(); }
 std::vector<FramePlacement> MapFusion::Placements() const { return impl_->Placements(); }
+FusionResumeState MapFusion::ResumeState(size_t from_slot) const {
+  return impl_->ResumeState(from_slot);
+}
+void MapFusion::Resume(FusionResumeState state) { impl_->Resume(std::move(state)); }
 FusionStats MapFusion::stats() const { return impl_->stats(); }
 
 }  // namespace irmosaic

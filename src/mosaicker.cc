@@ -41,6 +41,186 @@ PixelType PixelTypeOf(const cv::Mat& image) {
   }
 }
 
+// Version of the resume record (application state "fusion"); a newer one is refused.
+constexpr int kResumeRecordVersion = 1;
+// The store file that holds the record of the frames that left the fusion's window (they never
+// change again): one JSON line per frame, in push order, appended before the publish whose
+// manifest counts them, so the manifest carries only the frames that can still move.
+constexpr const char* kFrozenRecordFile = "resume_frames.jsonl";
+
+// One frame of the resume record. Numbers are written so that they read back exactly
+// (nlohmann::json writes the shortest text that round-trips a double).
+nlohmann::json PlacementRecord(const FramePlacement& p) {
+  std::vector<double> h(9);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) h[3 * r + c] = p.mosaic_from_image(r, c);
+  return {{"index", p.index},
+          {"time_s", p.time_s},
+          {"h", h},
+          {"pos_only", p.pos_only},
+          {"inliers", p.inliers},
+          {"residual_px", p.residual_px},
+          {"gain", p.gain},
+          {"offset", p.offset},
+          {"optimized", p.optimized_times},
+          {"neighbours", p.neighbours}};
+}
+
+// A damaged resume record is refused, never used: frames must not be placed at NaN.
+[[noreturn]] void RefuseRecord(const SourceLocation& where, const std::string& problem) {
+  throw InputError(where, problem,
+                   "the store's resume record is damaged: start again with --overwrite (the "
+                   "published tiles stay readable as they are)");
+}
+
+int64_t RecordInteger(const nlohmann::json& j, const char* key, SourceLocation where) {
+  where.field += key;
+  if (!j.is_object() || !j.contains(key) || !j[key].is_number_integer()) {
+    RefuseRecord(where, std::string(key) + " is missing or not an integer");
+  }
+  return j[key].get<int64_t>();
+}
+
+double RecordFinite(const nlohmann::json& j, const char* key, SourceLocation where,
+                    const std::string& what) {
+  where.field += key;
+  if (!j.contains(key) || !j[key].is_number() || !std::isfinite(j[key].get<double>())) {
+    RefuseRecord(where, what + " is not a finite number");
+  }
+  return j[key].get<double>();
+}
+
+// One frame of the record; `where` names its place (manifest field or log line).
+FramePlacement ParsePlacementRecord(const nlohmann::json& f, const SourceLocation& where) {
+  if (!f.is_object()) RefuseRecord(where, "a frame of the resume record is not a JSON object");
+  FramePlacement p;
+  p.index = RecordInteger(f, "index", where);
+  const std::string frame = "frame " + std::to_string(p.index) + "'s ";
+  SourceLocation at = where;
+  at.field += "h";
+  p.time_s = RecordFinite(f, "time_s", where, frame + "time");
+  if (!f.contains("h") || !f["h"].is_array() || f["h"].size() != 9) {
+    RefuseRecord(at, frame + "stored placement is not 9 numbers");
+  }
+  for (int i = 0; i < 9; ++i) {
+    const nlohmann::json& v = f["h"][static_cast<size_t>(i)];
+    if (!v.is_number() || !std::isfinite(v.get<double>())) {
+      RefuseRecord(at, frame + "stored placement is not finite");
+    }
+    p.mosaic_from_image(i / 3, i % 3) = v.get<double>();
+  }
+  if (std::abs(p.mosaic_from_image.determinant()) < 1e-12) {
+    RefuseRecord(at, frame + "stored placement is singular");
+  }
+  p.pos_mosaic_from_image = p.mosaic_from_image;
+  at.field = where.field + "pos_only";
+  if (!f.contains("pos_only") || !f["pos_only"].is_boolean()) {
+    RefuseRecord(at, frame + "pos_only is missing or not true/false");
+  }
+  p.pos_only = f["pos_only"].get<bool>();
+  p.inliers = static_cast<int>(RecordInteger(f, "inliers", where));
+  p.residual_px = RecordFinite(f, "residual_px", where, frame + "residual");
+  p.gain = RecordFinite(f, "gain", where, frame + "gain");
+  p.offset = RecordFinite(f, "offset", where, frame + "offset");
+  p.optimized_times = static_cast<int>(RecordInteger(f, "optimized", where));
+  at.field = where.field + "neighbours";
+  if (f.contains("neighbours")) {
+    if (!f["neighbours"].is_array()) RefuseRecord(at, frame + "neighbours are not an array");
+    for (const nlohmann::json& n : f["neighbours"]) {
+      if (!n.is_number_integer()) RefuseRecord(at, frame + "neighbours are not frame indices");
+      p.neighbours.push_back(n.get<int64_t>());
+    }
+  }
+  return p;
+}
+
+// The resume record as read back, and how much of the frozen frames' file it covers.
+struct ResumeRecord {
+  FusionResumeState state;
+  size_t frozen_frames = 0;
+  uintmax_t frozen_bytes = 0;
+};
+
+// Reads the resume record a run stored under "fusion" in its application state (and the
+// frozen frames' file it counts); throws InputError naming the file, the field or line and the
+// frame for anything missing, of the wrong type or not finite.
+ResumeRecord ParseResumeRecord(const nlohmann::json& doc, const std::filesystem::path& store) {
+  const std::string manifest = (store / "manifest.json").string();
+  const SourceLocation top{manifest, 0, 0, "application.fusion."};
+  if (!doc.is_object()) RefuseRecord(top, "the resume record is not a JSON object");
+  const int64_t version = RecordInteger(doc, "version", top);
+  if (version > kResumeRecordVersion) {
+    throw InputError({manifest, 0, 0, "application.fusion.version"},
+                     "the resume record has version " + std::to_string(version) +
+                         ", newer than this irmosaic reads (" +
+                         std::to_string(kResumeRecordVersion) + ")",
+                     "resume with the irmosaic that wrote the store");
+  }
+  ResumeRecord record;
+  FusionResumeState& state = record.state;
+  if (doc.contains("frozen")) {
+    SourceLocation at = top;
+    at.field += "frozen.";
+    const int64_t frames = RecordInteger(doc["frozen"], "frames", at);
+    const int64_t bytes = RecordInteger(doc["frozen"], "bytes", at);
+    const std::string log = (store / kFrozenRecordFile).string();
+    std::error_code error;  // Nothing frozen yet: the file need not exist.
+    const uintmax_t size = bytes > 0 ? std::filesystem::file_size(log, error) : 0;
+    if (frames < 0 || bytes < 0 || error || size < static_cast<uintmax_t>(bytes)) {
+      RefuseRecord({log, 0, 0, ""},
+                   "holds " + (error ? std::string("nothing") : std::to_string(size) + " bytes") +
+                       " but the manifest's resume record counts " + std::to_string(bytes) +
+                       " bytes of " + std::to_string(frames) + " frames");
+    }
+    std::string text(static_cast<size_t>(bytes), '\0');
+    if (bytes > 0) {
+      std::ifstream in(log, std::ios::binary);
+      in.read(text.data(), bytes);
+      if (!in) RefuseRecord({log, 0, 0, ""}, "cannot be read");
+    }
+    size_t start = 0;
+    for (int line = 1; start < text.size(); ++line) {
+      const size_t end = text.find('\n', start);
+      if (end == std::string::npos) RefuseRecord({log, line, 0, ""}, "the line is cut short");
+      const nlohmann::json f =
+          nlohmann::json::parse(text.begin() + static_cast<std::ptrdiff_t>(start),
+                                text.begin() + static_cast<std::ptrdiff_t>(end), nullptr, false);
+      state.placements.push_back(ParsePlacementRecord(f, {log, line, 0, ""}));
+      start = end + 1;
+    }
+    if (state.placements.size() != static_cast<size_t>(frames)) {
+      RefuseRecord({log, 0, 0, ""}, "holds " + std::to_string(state.placements.size()) +
+                                        " frames in its first " + std::to_string(bytes) +
+                                        " bytes but the manifest counts " + std::to_string(frames));
+    }
+    record.frozen_frames = state.placements.size();
+    record.frozen_bytes = static_cast<uintmax_t>(bytes);
+  }
+  if (!doc.contains("frames") || !doc["frames"].is_array()) {
+    RefuseRecord({manifest, 0, 0, "application.fusion.frames"}, "frames is not an array");
+  }
+  const nlohmann::json& frames = doc["frames"];
+  for (size_t k = 0; k < frames.size(); ++k) {
+    state.placements.push_back(ParsePlacementRecord(
+        frames[k], {manifest, 0, 0, "application.fusion.frames[" + std::to_string(k) + "]."}));
+  }
+  state.held_from = RecordInteger(doc, "held_from", top);
+  state.frames_since_solve = RecordInteger(doc, "frames_since_solve", top);
+  state.solving_through = RecordInteger(doc, "solving_through", top);
+  const SourceLocation pairs{manifest, 0, 0, "application.fusion.pairs"};
+  if (!doc.contains("pairs") || !doc["pairs"].is_array()) {
+    RefuseRecord(pairs, "pairs is not an array");
+  }
+  for (const nlohmann::json& p : doc["pairs"]) {
+    if (!p.is_array() || p.size() != 3 || !p[0].is_number_integer() || !p[1].is_number_integer() ||
+        !p[2].is_number() || !std::isfinite(p[2].get<double>())) {
+      RefuseRecord(pairs, "a pair is not [base, template, weight] with a finite weight");
+    }
+    state.pairs.push_back({p[0].get<int64_t>(), p[1].get<int64_t>(), p[2].get<double>()});
+  }
+  return record;
+}
+
 // Undistorted image pixel of an orthoimage pixel.
 Eigen::Vector2d ImageFromOrtho(const OrthoImage& ortho, const Eigen::Vector2d& p) {
   return ApplyHomography(ortho.ortho_from_image.inverse(), p);
@@ -220,20 +400,24 @@ class Mosaicker::Impl : public MosaicSink {
                                                            ground_, options_.pos_position_sigma_m,
                                                            options_.pos_attitude_sigma_deg, 0.2);
     if (!store_) OpenStore(PixelTypeOf(image));
+    // A frame the resume record holds is a replay: counted when the record was read, and
+    // nothing to publish (the store has it already).
+    const bool recorded = resume_recorded_ && index <= resumed_last_index_;
     result.placement = fusion_->Push(std::move(frame));
     result.status = PushResult::Status::kPlaced;
-    last_index_ = index;
-    Count(&MosaickerSummary::frames_placed);
-    if (result.placement.pos_only) {
-      Count(&MosaickerSummary::frames_pos_only);
-    } else {
-      Count(&MosaickerSummary::frames_registered);
+    last_index_ = std::max(last_index_, index);
+    if (!recorded) {
+      Count(&MosaickerSummary::frames_placed);
+      Count(result.placement.pos_only ? &MosaickerSummary::frames_pos_only
+                                      : &MosaickerSummary::frames_registered);
     }
     // Publish on a clock: each frame waits at most one interval plus the writer's work.
-    pending_.push_back({arrival, 0});
-    if (Clock::now() - last_publish_ >=
-        std::chrono::duration<double>(options_.publish_interval_s)) {
-      RequestPublishQuiet();
+    if (!recorded && !replay_) {
+      pending_.push_back({arrival, 0});
+      if (Clock::now() - last_publish_ >=
+          std::chrono::duration<double>(options_.publish_interval_s)) {
+        RequestPublishQuiet();
+      }
     }
     CollectLatencies();
     NotifyPublished();
@@ -247,8 +431,7 @@ class Mosaicker::Impl : public MosaicSink {
 
   void RequestPublishQuiet() {
     if (!store_) return;
-    nlohmann::json state = {{"last_index", last_index_}};
-    store_->SetApplicationState(state.dump());
+    store_->SetApplicationState(ApplicationState());
     const int64_t generation = store_->RequestPublish();
     for (auto& p : pending_) {
       if (p.second == 0) p.second = generation;
@@ -371,6 +554,8 @@ class Mosaicker::Impl : public MosaicSink {
 
   void SetReplay(bool replay) { replay_ = replay; }
   int64_t resumed_last_index() const { return resumed_last_index_; }
+  int64_t resume_replay_from() const { return replay_from_; }
+  const std::string& resume_warning() const { return resume_warning_; }
   TileStore* store() { return store_.get(); }
 
   // MosaicSink.
@@ -422,6 +607,66 @@ class Mosaicker::Impl : public MosaicSink {
     return text.str();
   }
 
+  // What `--resume` needs, published with every generation: the last frame painted and the
+  // resume record (every placement and the optimizer's state, docs/store.md). Frames that left
+  // the fusion's window never change again: they go once into the frozen frames' file, which
+  // is on disk (in the kernel's cache, as the tiles are) before the manifest counting them.
+  std::string ApplicationState() {
+    const FusionResumeState state = fusion_->ResumeState(frozen_record_frames_);
+    std::string frozen, moving;
+    size_t newly_frozen = 0;
+    for (size_t k = 0; k < state.placements.size(); ++k) {
+      const std::string text = PlacementRecord(state.placements[k]).dump();
+      if (state.first_slot + k < state.frozen_slots) {
+        frozen += text + "\n";
+        ++newly_frozen;
+      } else {
+        moving += (moving.empty() ? "" : ",") + text;
+      }
+    }
+    if (newly_frozen > 0 && AppendFrozenRecord(frozen)) {
+      frozen_record_frames_ += newly_frozen;
+    } else if (newly_frozen > 0) {
+      // Not written (full disk): the manifest carries them this time, the next publish retries.
+      std::replace(frozen.begin(), frozen.end(), '\n', ',');
+      moving = frozen + moving;
+      if (moving.back() == ',') moving.pop_back();
+    }
+    nlohmann::json pairs = nlohmann::json::array();
+    for (const FusionResumeState::Pair& p : state.pairs) {
+      pairs.push_back({p.base, p.templ, p.weight});
+    }
+    const nlohmann::json fusion = {
+        {"version", kResumeRecordVersion},
+        {"frozen", {{"frames", frozen_record_frames_}, {"bytes", frozen_record_bytes_}}},
+        {"held_from", state.held_from},
+        {"frames_since_solve", state.frames_since_solve},
+        {"solving_through", state.solving_through},
+        {"pairs", pairs}};
+    std::string text = fusion.dump();  // An object: the frames go in before its closing brace.
+    text.pop_back();
+    text += ",\"frames\":[" + moving + "]}";
+    return "{\"last_index\":" + std::to_string(last_index_) + ",\"fusion\":" + text + "}";
+  }
+
+  // Appends lines to the frozen frames' file; false (and the file as it was) if they cannot
+  // be written: the store's own publish reports the full disk (TileStore::WaitPublished).
+  bool AppendFrozenRecord(const std::string& lines) {
+    const std::filesystem::path path =
+        std::filesystem::path(options_.store_path) / kFrozenRecordFile;
+    if (!frozen_record_.is_open()) frozen_record_.open(path, std::ios::binary | std::ios::app);
+    frozen_record_ << lines;
+    frozen_record_.flush();
+    if (frozen_record_) {
+      frozen_record_bytes_ += lines.size();
+      return true;
+    }
+    frozen_record_.close();
+    std::error_code error;
+    std::filesystem::resize_file(path, frozen_record_bytes_, error);
+    return false;
+  }
+
   void OpenStore(PixelType type) {
     TileStoreOptions store_options;
     store_options.path = options_.store_path;
@@ -442,8 +687,51 @@ class Mosaicker::Impl : public MosaicSink {
         if (doc.is_object() && doc.contains("last_index") && doc["last_index"].is_number()) {
           resumed_last_index_ = doc["last_index"].get<int64_t>();
         }
+        if (resumed_last_index_ >= 0 && doc.contains("fusion")) {
+          Resume(ParseResumeRecord(doc["fusion"], options_.store_path));
+        } else if (resumed_last_index_ >= 0) {
+          replay_from_ =
+              std::max<int64_t>(0, resumed_last_index_ - options_.fusion.window_frames + 1);
+          resume_warning_ = options_.store_path +
+                            " has no resume record (written by an irmosaic before 2026-12-01): "
+                            "the frames before " +
+                            std::to_string(replay_from_) +
+                            " keep their tiles but not their placements (they are missing from "
+                            "placements.json), and the replayed ones may differ from an "
+                            "uninterrupted run";
+        }
+      }
+      last_index_ = resumed_last_index_;
+    }
+    // The frozen frames' file holds what the manifest counts and nothing after it (a run killed
+    // between an append and its publish left lines no manifest counts).
+    const std::filesystem::path log =
+        std::filesystem::path(options_.store_path) / kFrozenRecordFile;
+    std::error_code error;
+    if (frozen_record_bytes_ > 0) {
+      std::filesystem::resize_file(log, frozen_record_bytes_, error);
+    } else {
+      std::filesystem::remove(log, error);
+    }
+    if (error) throw OutputError("cannot truncate " + log.string() + ": " + error.message());
+  }
+
+  // Seeds the fusion from the store's resume record.
+  void Resume(ResumeRecord record) {
+    frozen_record_frames_ = record.frozen_frames;
+    frozen_record_bytes_ = record.frozen_bytes;
+    FusionResumeState& state = record.state;
+    replay_from_ = state.ReplayFrom();
+    if (replay_from_ < 0) replay_from_ = resumed_last_index_ + 1;  // Nothing held: no replay.
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      for (const FramePlacement& p : state.placements) {
+        ++summary_.frames_placed;
+        ++(p.pos_only ? summary_.frames_pos_only : summary_.frames_registered);
       }
     }
+    fusion_->Resume(std::move(state));
+    resume_recorded_ = true;
   }
 
   // Keeps a frame's POS orthoimage for registration to the frames after it (bounded).
@@ -571,6 +859,14 @@ class Mosaicker::Impl : public MosaicSink {
   bool replay_ = false;
   int64_t last_index_ = -1;
   int64_t resumed_last_index_ = -1;
+  int64_t replay_from_ = -1;      // First frame a resume pushes again (-1: not resuming).
+  bool resume_recorded_ = false;  // The fusion was seeded from the store's resume record.
+  std::string resume_warning_;
+  // The frozen frames' file (kFrozenRecordFile), how many frames (the first ones in push
+  // order) and bytes it holds.
+  std::ofstream frozen_record_;
+  size_t frozen_record_frames_ = 0;
+  uintmax_t frozen_record_bytes_ = 0;
   Clock::time_point last_publish_ = Clock::now();
   mutable std::mutex mu_;
   std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;      // Kept part of clipped frames.
@@ -609,6 +905,8 @@ void Mosaicker::SetReplay(bool replay) { impl_->SetReplay(replay); }
 void Mosaicker::Finish() { impl_->Finish(); }
 void Mosaicker::RequestPublish() { impl_->RequestPublish(); }
 int64_t Mosaicker::resumed_last_index() const { return impl_->resumed_last_index(); }
+int64_t Mosaicker::resume_replay_from() const { return impl_->resume_replay_from(); }
+const std::string& Mosaicker::resume_warning() const { return impl_->resume_warning(); }
 MosaickerSummary Mosaicker::summary() const { return impl_->summary(); }
 std::vector<FramePlacement> Mosaicker::Placements() const { return impl_->Placements(); }
 void Mosaicker::WritePlacements(const std::string& path) const { impl_->WritePlacements(path); }

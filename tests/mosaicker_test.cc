@@ -9,6 +9,8 @@
 
 #include <atomic>
 #include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <thread>
 
@@ -399,6 +401,176 @@ TEST(MosaickerApiTest, GenerationsWindowAndRecordsAgreeWithWhatGdalReads) {
           << "frame " << k << " corner " << c;
     }
   }
+  fs::remove_all(options.store_path);
+}
+
+// The store records every published placement for --resume (docs/store.md, "Resume record"): a
+// resumed Mosaicker holds every frame of the killed run before it pushes anything, each exactly
+// where the store put it, and asks back only for the frames still in the optimizer's window.
+// A record whose placement is not finite (NaN is written as null) is refused, naming the store
+// and the frame, instead of placing frames at NaN.
+TEST(MosaickerApiTest, AResumedStoreHoldsEveryRecordedPlacementAndRefusesADamagedOne) {
+  FlightSimulator sim(Flight(24));
+  MosaickerOptions options;
+  options.store_path = TempStore("record");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  options.fusion.window_frames = 4;
+  std::vector<FramePlacement> written;
+  {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    for (int i = 0; i < sim.frame_count(); ++i) {
+      const SimFrame f = sim.Render(i);
+      ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed()) << i;
+    }
+    m.Finish();
+    written = m.Placements();
+  }
+  ASSERT_EQ(written.size(), 24u);
+  options.mode = TileStoreOptions::Mode::kResume;
+  {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    EXPECT_EQ(m.resumed_last_index(), 23);
+    EXPECT_TRUE(m.resume_warning().empty()) << m.resume_warning();
+    // Held at the end: the last 2 windows (frames 16-23) and the bases of their pairs, which
+    // reach back one sweep (8 frames) at most; the frames before are not pushed again.
+    std::printf("resume replays frames %lld-23\n", static_cast<long long>(m.resume_replay_from()));
+    EXPECT_GE(m.resume_replay_from(), 8);
+    EXPECT_LE(m.resume_replay_from(), 16);
+    const std::vector<FramePlacement> resumed = m.Placements();
+    ASSERT_EQ(resumed.size(), written.size());
+    double worst_px = 0.0;
+    for (size_t k = 0; k < written.size(); ++k) {
+      EXPECT_EQ(resumed[k].index, written[k].index);
+      for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 511)}) {
+        worst_px = std::max(worst_px, (ApplyHomography(resumed[k].mosaic_from_image, corner) -
+                                       ApplyHomography(written[k].mosaic_from_image, corner))
+                                          .norm());
+      }
+    }
+    std::printf("recorded placements read back: %zu frames, worst corner %.3g px\n", resumed.size(),
+                worst_px);
+    EXPECT_LT(worst_px, 1e-9);  // Read back exactly (shortest round-trip text).
+    EXPECT_EQ(m.summary().frames_placed, 24);
+    // The held frames pushed again (the replay) and a last solve: the finished run's solution
+    // again, within the 0.5 px (the solve restarts from it, with its pair weights).
+    for (int64_t i = m.resume_replay_from(); i < sim.frame_count(); ++i) {
+      const SimFrame f = sim.Render(static_cast<int>(i));
+      ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed()) << i;
+    }
+    m.Finish();
+    const std::vector<FramePlacement> again = m.Placements();
+    ASSERT_EQ(again.size(), written.size());
+    double moved_px = 0.0;
+    for (size_t k = 0; k < written.size(); ++k) {
+      for (const Eigen::Vector2d& corner : {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 511)}) {
+        moved_px = std::max(moved_px, (ApplyHomography(again[k].mosaic_from_image, corner) -
+                                       ApplyHomography(written[k].mosaic_from_image, corner))
+                                          .norm());
+      }
+    }
+    std::printf("replayed and solved again: worst corner moved %.3g px\n", moved_px);
+    EXPECT_LT(moved_px, 0.5);
+  }
+  // Frames that left the window are in resume_frames.jsonl (one line each, push order), the
+  // rest in the manifest. Either place refuses a placement that is not finite.
+  const std::string manifest = options.store_path + "/manifest.json";
+  const std::string log = options.store_path + "/resume_frames.jsonl";
+  nlohmann::json doc;
+  {
+    std::ifstream in(manifest);
+    doc = nlohmann::json::parse(in);
+  }
+  const nlohmann::json& record = doc["application"]["fusion"];
+  const size_t frozen = record["frozen"]["frames"].get<size_t>();
+  std::printf("record: %zu frames in resume_frames.jsonl, %zu in the manifest\n", frozen,
+              record["frames"].size());
+  ASSERT_GT(frozen, 5u);
+  ASSERT_EQ(frozen + record["frames"].size(), 24u);
+  std::vector<std::string> lines;
+  {
+    std::ifstream in(log);
+    for (std::string line; std::getline(in, line);) lines.push_back(line);
+  }
+  ASSERT_EQ(lines.size(), frozen);
+  auto refusal = [&]() -> std::string {
+    try {
+      Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    } catch (const InputError& e) {
+      return e.what();
+    }
+    return "accepted";
+  };
+  nlohmann::json line5 = nlohmann::json::parse(lines[5]);
+  ASSERT_EQ(line5["index"], 5);
+  line5["h"][2] = nullptr;  // What a NaN is written as; padded to the line's length.
+  std::string damaged = line5.dump();
+  ASSERT_LE(damaged.size(), lines[5].size());
+  damaged.resize(lines[5].size(), ' ');
+  {
+    std::ofstream out(log);
+    for (size_t k = 0; k < lines.size(); ++k) out << (k == 5 ? damaged : lines[k]) << "\n";
+  }
+  std::string message = refusal();
+  EXPECT_NE(message.find(log + ":6"), std::string::npos) << message;
+  EXPECT_NE(message.find("frame 5's stored placement is not finite"), std::string::npos) << message;
+  EXPECT_NE(message.find("--overwrite"), std::string::npos) << message;
+  {
+    std::ofstream out(log);
+    for (const std::string& line : lines) out << line << "\n";
+  }
+  const int64_t moving = doc["application"]["fusion"]["frames"][0]["index"].get<int64_t>();
+  doc["application"]["fusion"]["frames"][0]["h"][4] = nullptr;
+  std::ofstream(manifest) << doc.dump();
+  message = refusal();
+  EXPECT_NE(message.find(manifest), std::string::npos) << message;
+  EXPECT_NE(message.find("frame " + std::to_string(moving) + "'s stored placement is not finite"),
+            std::string::npos)
+      << message;
+  fs::remove_all(options.store_path);
+}
+
+// A frozen frames' file that cannot be written (here a folder in its place; a full disk in the
+// field) loses nothing: those frames stay in the manifest's record until an append succeeds,
+// and a resume reads them all back exactly.
+TEST(MosaickerApiTest, AResumeRecordTheFrozenFileCannotTakeStaysWholeInTheManifest) {
+  FlightSimulator sim(Flight(12));
+  MosaickerOptions options;
+  options.store_path = TempStore("record_full");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  options.fusion.window_frames = 2;
+  std::vector<FramePlacement> written;
+  {
+    Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+    for (int i = 0; i < sim.frame_count(); ++i) {
+      const SimFrame f = sim.Render(i);
+      ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed()) << i;
+      if (i == 0) fs::create_directory(options.store_path + "/resume_frames.jsonl");
+    }
+    m.Finish();
+    written = m.Placements();
+  }
+  nlohmann::json doc;
+  {
+    std::ifstream in(options.store_path + "/manifest.json");
+    doc = nlohmann::json::parse(in);
+  }
+  const nlohmann::json& record = doc["application"]["fusion"];
+  EXPECT_EQ(record["frozen"]["frames"], 0);
+  EXPECT_EQ(record["frames"].size(), 12u);
+  options.mode = TileStoreOptions::Mode::kResume;
+  Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+  const std::vector<FramePlacement> resumed = m.Placements();
+  ASSERT_EQ(resumed.size(), written.size());
+  double worst_px = 0.0;
+  for (size_t k = 0; k < written.size(); ++k) {
+    const Eigen::Vector2d corner(639, 511);
+    worst_px = std::max(worst_px, (ApplyHomography(resumed[k].mosaic_from_image, corner) -
+                                   ApplyHomography(written[k].mosaic_from_image, corner))
+                                      .norm());
+  }
+  std::printf("record kept in the manifest: %zu frames read back, worst corner %.3g px\n",
+              resumed.size(), worst_px);
+  EXPECT_LT(worst_px, 1e-9);
   fs::remove_all(options.store_path);
 }
 

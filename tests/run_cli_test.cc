@@ -7,6 +7,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
@@ -194,6 +195,64 @@ TEST_F(RunCliTest, KillNineThenResumeMatchesAnUninterruptedRun) {
   // The resumed mosaic covers the whole flight, as the uninterrupted one does.
   EXPECT_NEAR(vrt->GetRasterXSize(), ref_vrt->GetRasterXSize(), 2);
   EXPECT_NEAR(vrt->GetRasterYSize(), ref_vrt->GetRasterYSize(), 2);
+}
+
+// A flight longer than the optimization window (--window 16, 64 frames): frames that left the
+// window before the kill were frozen at their published placement, so the resume must start from
+// the placements the store recorded, not re-derive them. Killed once the published state is past
+// two windows; the resumed placements.json must hold every frame and agree with an uninterrupted
+// run with the same options within the 0.5 px (worst grid point of any frame).
+TEST_F(RunCliTest, KillNineThenResumeWithAShortWindowMatchesAnUninterruptedRun) {
+  const std::string reference = dir_ + "/ref16.irmosaic";
+  std::string log;
+  ASSERT_EQ(RunCli(reference, "--window 16", &log), 0) << log;
+  const std::string store = dir_ + "/killed16.irmosaic";
+  const pid_t child = fork();
+  if (child == 0) {
+    const std::string frames = dir_ + "/flight/frames.csv", pos = dir_ + "/flight/pos.csv",
+                      camera = dir_ + "/flight/camera.json";
+    std::freopen("/dev/null", "w", stderr);
+    execl(testing::CliPath().c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos",
+          pos.c_str(), "--camera", camera.c_str(), "--out", store.c_str(), "--window", "16",
+          nullptr);
+    _exit(127);
+  }
+  // Kill once the published state is past frame 32 (two windows frozen behind it).
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  int64_t last_index = -1;
+  while (std::chrono::steady_clock::now() < deadline) {
+    std::ifstream in(store + "/manifest.json");
+    if (in) {
+      const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
+      if (m.is_object() && m.contains("application") && m["application"].is_object() &&
+          m["application"].contains("last_index")) {
+        last_index = m["application"]["last_index"].get<int64_t>();
+      }
+    }
+    if (last_index >= 32) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  kill(child, SIGKILL);
+  int status = 0;
+  waitpid(child, &status, 0);
+  ASSERT_GE(last_index, 32) << "the run published too little before the deadline";
+  std::printf("killed with frames 0-%lld published\n", static_cast<long long>(last_index));
+  ASSERT_EQ(RunCli(store, "--resume --window 16", &log), 0) << log;
+  EXPECT_NE(log.find("resuming after frame"), std::string::npos) << log;
+  const Placements ref = Placements::LoadJson(reference + "/placements.json");
+  const Placements resumed = Placements::LoadJson(store + "/placements.json");
+  const PlacementScore score = Evaluator(ref).ScorePlacements(resumed, "resumed");
+  double worst_px = 0.0;
+  for (const FrameScore& f : score.frames) worst_px = std::max(worst_px, f.max_px);
+  std::printf(
+      "resumed (--window 16) vs uninterrupted: %d of %d frames, %d missing, worst %.3f px"
+      " (RMSE mean %.3f, max %.3f px)\n",
+      score.frames_scored, score.frames_in_truth, score.frames_missing, worst_px,
+      score.rmse_px.mean, score.rmse_px.max);
+  EXPECT_EQ(score.frames_in_truth, 64);
+  EXPECT_EQ(score.frames_missing, 0);
+  EXPECT_EQ(resumed.frames.size(), ref.frames.size());
+  EXPECT_LT(worst_px, 0.5);
 }
 
 // Bad video input through the whole command: the flight's frames as an MJPEG AVI (8-bit), one

@@ -129,11 +129,37 @@ struct FusionStats {
   double predicted_rmse_px = 0.0;
 };
 
+// The fusion state a resumed run starts from, as a published moment recorded it
+// (MapFusion::ResumeState, MapFusion::Resume): every frame's placement, which frames were still
+// held, the optimizer's pair weights and where its solves stood. Frames that had left the held
+// window stay exactly where they were published; the held ones are replayed (their images
+// pushed again) so the optimizer continues as the uninterrupted run would have.
+struct FusionResumeState {
+  // A pair the optimizer still used, by frame index, in registration order.
+  struct Pair {
+    int64_t base = -1;
+    int64_t templ = -1;
+    double weight = 1.0;  // Its pair-level weight (docs/fusion.md, "Pair weights").
+  };
+  std::vector<FramePlacement> placements;  // In push order, from slot `first_slot` on.
+  size_t first_slot = 0;                   // Push-order position of placements.front().
+  size_t frozen_slots = 0;         // Frames before this push-order position never change again.
+  int64_t held_from = -1;          // Index of the oldest frame held (-1: none).
+  std::vector<Pair> pairs;         // Pairs still in use (each one's template frame is held).
+  int64_t frames_since_solve = 0;  // Frames pushed since the last solve took its snapshot.
+  int64_t solving_through = -1;    // Newest frame of a solve running at that moment, or -1.
+
+  // Oldest frame a replay must push again: held_from, or an older base of a pair in use
+  // (-1: nothing to replay).
+  int64_t ReplayFrom() const;
+};
+
 // Map fusion (paper section 5): a real-time mapping step in the caller's thread and a global
 // optimization thread over a sliding window (Ceres), with radiometric compensation and
 // feathered seams. Push() never waits for the optimizer.
 //
-// Thread-safety: Push() and Finish() from one thread; Placements() and stats() from any.
+// Thread-safety: Push(), Resume() and Finish() from one thread; Placements(), ResumeState() and
+// stats() from any.
 class IRMOSAIC_EXPORT MapFusion {
  public:
   // Does NOT take ownership of `sink`, which must outlive this object (may be null).
@@ -149,8 +175,23 @@ class IRMOSAIC_EXPORT MapFusion {
   // Runs a last solve over the window, re-renders what moved and stops the thread.
   void Finish();
 
-  // Latest placement of every frame pushed so far.
+  // Latest placement of every frame pushed so far (and of every frame given to Resume).
   std::vector<FramePlacement> Placements() const;
+
+  // A consistent snapshot of the state a resumed run needs, with the placements from push-order
+  // position `from_slot` on (a caller that kept the frozen ones asks for the rest only).
+  FusionResumeState ResumeState(size_t from_slot = 0) const;
+  // Starts from a recorded state instead of empty, before the first Push: its placements (all
+  // of them, first_slot 0) become the placements of those frames. The frames from
+  // state.ReplayFrom() to the last recorded one must then be pushed again, in order, as
+  // before: each is re-registered to the neighbours the record names and keeps its recorded
+  // placement (nothing is rendered or solved). The first newer frame (or Finish) ends the
+  // replay: frames older than held_from leave the window, a solve that was running at the
+  // record is run again, and the optimizer goes on. Frames older than ReplayFrom() are never
+  // pushed again: they stay frozen at their recorded placement (their pos_mosaic_from_image,
+  // not recorded, is set to it). Throws std::invalid_argument after a Push, for duplicate
+  // indices, or later from Push for a replayed frame the record does not hold.
+  void Resume(FusionResumeState state);
   FusionStats stats() const;
 
  private:

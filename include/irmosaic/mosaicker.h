@@ -126,7 +126,9 @@ class IRMOSAIC_EXPORT Mosaicker {
   PushResult Push(int64_t index, double time_s, const cv::Mat& image,
                   std::chrono::steady_clock::time_point arrival);
 
-  // While true, pushed frames rebuild the fusion state but are not painted (resume replay).
+  // While true, pushed frames rebuild the fusion state but are not painted (resume replay of a
+  // store without a resume record; with one, frames up to resumed_last_index() are replays
+  // whatever this says).
   void SetReplay(bool replay);
 
   // Last solve, re-render, final publish; throws OutputError if the store cannot be written.
@@ -149,6 +151,16 @@ class IRMOSAIC_EXPORT Mosaicker {
 
   // Index of the last frame in the published application state of a resumed store (-1: none).
   int64_t resumed_last_index() const;
+  // First frame a resumed run must push again (-1: not resuming). The store records every
+  // published placement and the optimizer's state (docs/store.md, "Resume record"): frames
+  // before this one keep their recorded placement and are not pushed again; from this one to
+  // resumed_last_index() they are replayed (re-registered, not painted, nothing published)
+  // and keep their recorded placements; newer frames are mosaicked as usual. A store written
+  // before the record existed falls back to replaying the last window_frames frames, and
+  // resume_warning() says so.
+  int64_t resume_replay_from() const;
+  // Why this resume cannot reproduce an uninterrupted run ("" when it can).
+  const std::string& resume_warning() const;
 
   MosaickerSummary summary() const;
   // Placement of every frame placed so far (latest estimate, refined by the optimizer).
