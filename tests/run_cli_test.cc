@@ -64,6 +64,22 @@ class RunCliTest : public ::testing::Test {
     return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   }
 
+  // Starts `irmosaic run` on the flight into `store` as a child process (stderr discarded), with
+  // `--window window` when window > 0, for a test to kill; returns its pid.
+  static pid_t StartRun(const std::string& store, int window) {
+    const std::string frames = dir_ + "/flight/frames.csv", pos = dir_ + "/flight/pos.csv",
+                      camera = dir_ + "/flight/camera.json", window_s = std::to_string(window);
+    const pid_t child = fork();
+    if (child == 0) {
+      std::freopen("/dev/null", "w", stderr);
+      execl(testing::CliPath().c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos",
+            pos.c_str(), "--camera", camera.c_str(), "--out", store.c_str(),
+            window > 0 ? "--window" : nullptr, window_s.c_str(), nullptr);
+      _exit(127);
+    }
+    return child;
+  }
+
   static std::string dir_;
 };
 std::string RunCliTest::dir_;
@@ -141,15 +157,7 @@ TEST_F(RunCliTest, KillNineThenResumeMatchesAnUninterruptedRun) {
   std::string log;
   ASSERT_EQ(RunCli(reference, "", &log), 0) << log;
   const std::string store = dir_ + "/killed.irmosaic";
-  const pid_t child = fork();
-  if (child == 0) {
-    const std::string frames = dir_ + "/flight/frames.csv", pos = dir_ + "/flight/pos.csv",
-                      camera = dir_ + "/flight/camera.json";
-    std::freopen("/dev/null", "w", stderr);
-    execl(testing::CliPath().c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos",
-          pos.c_str(), "--camera", camera.c_str(), "--out", store.c_str(), nullptr);
-    _exit(127);
-  }
+  const pid_t child = StartRun(store, 0);
   // Kill once a few generations are on disk, mid-run.
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
   int64_t generation = 0;
@@ -207,16 +215,7 @@ TEST_F(RunCliTest, KillNineThenResumeWithAShortWindowMatchesAnUninterruptedRun) 
   std::string log;
   ASSERT_EQ(RunCli(reference, "--window 16", &log), 0) << log;
   const std::string store = dir_ + "/killed16.irmosaic";
-  const pid_t child = fork();
-  if (child == 0) {
-    const std::string frames = dir_ + "/flight/frames.csv", pos = dir_ + "/flight/pos.csv",
-                      camera = dir_ + "/flight/camera.json";
-    std::freopen("/dev/null", "w", stderr);
-    execl(testing::CliPath().c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos",
-          pos.c_str(), "--camera", camera.c_str(), "--out", store.c_str(), "--window", "16",
-          nullptr);
-    _exit(127);
-  }
+  const pid_t child = StartRun(store, 16);
   // Kill once the published state is past frame 32 (two windows frozen behind it).
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
   int64_t last_index = -1;
