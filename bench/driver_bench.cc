@@ -51,6 +51,10 @@ double Median(std::vector<double> v) {
   return v.empty() ? 0.0 : v[v.size() / 2];
 }
 
+// What a small change costs to publish once the store is large: RequestPublish -> on disk for a
+// 16 x 16 patch in one tile (its tile, its overview parents and the index), median of 5.
+double g_small_publish_ms = 0.0;
+
 // A square store of side ceil(sqrt(tiles)) tiles, painted one tile row at a time (a publish per
 // row keeps the writer's dirty set small). Returns the seconds it took.
 double BuildStore(const fs::path& dir, int tiles) {
@@ -79,8 +83,18 @@ double BuildStore(const fs::path& dir, int tiles) {
     store->RequestPublish();
   }
   store->WaitPublished(store->RequestPublish());
+  const double build_s = std::chrono::duration<double>(Clock::now() - start).count();
+  std::vector<double> small;
+  for (int i = 0; i < 5; ++i) {
+    const cv::Mat patch(16, 16, CV_16U, cv::Scalar(9000 + i)), w(16, 16, CV_32F, cv::Scalar(1.0));
+    store->Paint(patch, w, {width / 2 + 32 * i, width / 2});
+    const auto t0 = Clock::now();
+    store->WaitPublished(store->RequestPublish());
+    small.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+  }
+  g_small_publish_ms = Median(small);
   store->Close();
-  return std::chrono::duration<double>(Clock::now() - start).count();
+  return build_s;
 }
 
 struct Timing {
@@ -168,6 +182,8 @@ int main(int argc, char** argv) {
   if (!keep || !fs::exists(manifest)) build_s = BuildStore(dir, tiles);
   std::ifstream in(manifest);
   const nlohmann::json m = nlohmann::json::parse(in);
+  const uintmax_t vrt_bytes = fs::file_size(dir / "mosaic.vrt");
+  const uintmax_t manifest_bytes = fs::file_size(manifest);
   const size_t level0_tiles = m["levels"][0]["tiles"].size();
   size_t all_tiles = 0;
   for (const auto& level : m["levels"]) all_tiles += level["tiles"].size();
@@ -205,7 +221,13 @@ int main(int argc, char** argv) {
             << " px, " << overviews << " overviews, " << bytes / (1 << 20) << " MiB"
             << (build_s > 0 ? ", built in " + std::to_string(static_cast<int>(build_s)) + " s"
                             : std::string(", reused"))
-            << "; median of " << repeats << " fresh opens, page cache warm\n\n";
+            << "; median of " << repeats << " fresh opens, page cache warm\n";
+  if (build_s > 0) {
+    std::cout << "publishing a 16 x 16 patch at this size: " << std::fixed << std::setprecision(1)
+              << g_small_publish_ms << " ms (median of 5); mosaic.vrt "
+              << vrt_bytes / 1024 << " KiB, manifest.json " << manifest_bytes / 1024 << " KiB\n";
+  }
+  std::cout << "\n";
   std::cout << std::left << std::setw(12) << "way in" << std::setw(32) << "what" << std::right
             << std::setw(10) << "wall ms" << std::setw(10) << "cpu ms" << std::setw(16)
             << "band-1 sum\n";
@@ -231,6 +253,9 @@ int main(int argc, char** argv) {
                                                {"overviews", overviews},
                                                {"store_bytes", bytes},
                                                {"build_s", build_s},
+                                               {"small_publish_ms", g_small_publish_ms},
+                                               {"mosaic_vrt_bytes", vrt_bytes},
+                                               {"manifest_bytes", manifest_bytes},
                                                {"repeats", repeats},
                                                {"results", results}}
                                     .dump(2)

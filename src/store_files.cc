@@ -491,6 +491,94 @@ TileBounds BoundsOf(const TileSet& tiles) {
   return b;
 }
 
+BlockIndex BlockOf(const TileIndex& tile) {
+  auto floor_div = [](int64_t v) {
+    return v >= 0 ? v / kVrtBlockTiles : -((-v + kVrtBlockTiles - 1) / kVrtBlockTiles);
+  };
+  return {floor_div(tile.first), floor_div(tile.second)};
+}
+
+std::string BlockVrtName(const BlockIndex& block) {
+  return "block_r" + std::to_string(block.first) + "_c" + std::to_string(block.second) + ".vrt";
+}
+
+std::map<BlockIndex, int64_t> BlockTileCounts(const TileSet& tiles) {
+  std::map<BlockIndex, int64_t> counts;
+  for (const TileIndex& tile : tiles) ++counts[BlockOf(tile)];
+  return counts;
+}
+
+namespace {
+
+// GDAL's block size for a VRT band that names none: what a block VRT reports when opened.
+constexpr int64_t kVrtDefaultBlockSize = 128;
+
+// The head of a VRT of `width` x `height` pixels with geotransform `gt`.
+void VrtHead(const Manifest& manifest, int level, const double gt[6], int64_t width,
+             int64_t height, std::ostringstream* xml) {
+  *xml << "<VRTDataset rasterXSize=\"" << width << "\" rasterYSize=\"" << height << "\">\n"
+       << "  <SRS dataAxisToSRSAxisMapping=\"1,2\">" << XmlEscape(manifest.georef.crs_wkt)
+       << "</SRS>\n"
+       << "  <GeoTransform>" << FormatGeoTransform(gt) << "</GeoTransform>\n"
+       << "  <Metadata>\n    <MDI key=\"IRMOSAIC_GENERATION\">" << manifest.generation
+       << "</MDI>\n    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
+}
+
+// A source of `size` x `size` pixels (file `path`, block size `block`) whose top-left pixel
+// sits at (dx, dy) of a VRT of width x height: clipped to the VRT.
+void VrtSource(const std::string& path, int band, const std::string& type, int64_t size,
+               int64_t block, int64_t dx, int64_t dy, int64_t width, int64_t height,
+               std::ostringstream* xml) {
+  const int64_t sx = std::max<int64_t>(0, -dx), sy = std::max<int64_t>(0, -dy);
+  const int64_t w = std::min(size - sx, width - std::max<int64_t>(0, dx));
+  const int64_t h = std::min(size - sy, height - std::max<int64_t>(0, dy));
+  if (w <= 0 || h <= 0) return;
+  *xml << "    <SimpleSource>\n      <SourceFilename relativeToVRT=\"1\">" << XmlEscape(path)
+       << "</SourceFilename>\n"
+       << "      <SourceBand>" << band << "</SourceBand>\n"
+       << "      <SourceProperties RasterXSize=\"" << size << "\" RasterYSize=\"" << size
+       << "\" DataType=\"" << type << "\" BlockXSize=\"" << block << "\" BlockYSize=\"" << block
+       << "\"/>\n"
+       << "      <SrcRect xOff=\"" << sx << "\" yOff=\"" << sy << "\" xSize=\"" << w
+       << "\" ySize=\"" << h << "\"/>\n"
+       << "      <DstRect xOff=\"" << std::max<int64_t>(0, dx) << "\" yOff=\""
+       << std::max<int64_t>(0, dy) << "\" xSize=\"" << w << "\" ySize=\"" << h << "\"/>\n"
+       << "    </SimpleSource>\n";
+}
+
+void VrtBandHead(int band, const std::string& type, std::ostringstream* xml) {
+  *xml << "  <VRTRasterBand dataType=\"" << type << "\" band=\"" << band << "\">\n"
+       << "    <ColorInterp>" << (band == 1 ? "Gray" : "Alpha") << "</ColorInterp>\n";
+}
+
+}  // namespace
+
+std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex& block) {
+  const int64_t t = manifest.tile_size;
+  const int64_t side = kVrtBlockTiles * t;
+  const TileIndex first = {block.first * kVrtBlockTiles, block.second * kVrtBlockTiles};
+  const std::string type = GdalTypeNameOf(manifest.type);
+  double gt[6];
+  TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, level, first, gt);
+  std::ostringstream xml;
+  VrtHead(manifest, level, gt, side, side, &xml);
+  const TileSet& tiles = manifest.levels[level];
+  const auto begin = tiles.lower_bound({first.first, INT64_MIN});
+  const auto end = tiles.lower_bound({first.first + kVrtBlockTiles, INT64_MIN});
+  for (int band = 1; band <= 2; ++band) {
+    VrtBandHead(band, type, &xml);
+    for (auto it = begin; it != end; ++it) {
+      if (BlockOf(*it) != block) continue;
+      VrtSource(std::to_string(it->first) + "_" + std::to_string(it->second) + ".tif", band, type,
+                t, std::min<int64_t>(kBlockSize, t), (it->second - first.second) * t,
+                (it->first - first.first) * t, side, side, &xml);
+    }
+    xml << "  </VRTRasterBand>\n";
+  }
+  xml << "</VRTDataset>\n";
+  return xml.str();
+}
+
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
                           const std::vector<std::string>& overview_paths) {
   const int64_t t = manifest.tile_size;
@@ -500,46 +588,27 @@ std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds&
   const int64_t x0 = bounds.col0 * t / scale, y0 = bounds.row0 * t / scale;
   const int64_t width = (bounds.col1 - bounds.col0) * t / scale;
   const int64_t height = (bounds.row1 - bounds.row0) * t / scale;
+  const std::string type = GdalTypeNameOf(manifest.type);
+  const std::string prefix = level == 0 ? "tiles/0/" : "";  // Level VRTs sit beside their tiles.
+  const int64_t side = kVrtBlockTiles * t;
+
   double gt[6];
   TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, 0, {bounds.row0, bounds.col0}, gt);
   gt[1] *= static_cast<double>(scale);
   gt[5] *= static_cast<double>(scale);
-  const std::string type = GdalTypeNameOf(manifest.type);
-  const std::string prefix = level == 0 ? "tiles/0/" : "";  // Level VRTs sit beside their tiles.
-
   std::ostringstream xml;
-  xml << "<VRTDataset rasterXSize=\"" << width << "\" rasterYSize=\"" << height << "\">\n"
-      << "  <SRS dataAxisToSRSAxisMapping=\"1,2\">" << XmlEscape(manifest.georef.crs_wkt)
-      << "</SRS>\n"
-      << "  <GeoTransform>" << FormatGeoTransform(gt) << "</GeoTransform>\n"
-      << "  <Metadata>\n    <MDI key=\"IRMOSAIC_GENERATION\">" << manifest.generation
-      << "</MDI>\n    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
-  const TileSet& tiles = manifest.levels[level];
+  VrtHead(manifest, level, gt, width, height, &xml);
+  const std::map<BlockIndex, int64_t> blocks = BlockTileCounts(manifest.levels[level]);
   for (int band = 1; band <= 2; ++band) {
-    xml << "  <VRTRasterBand dataType=\"" << type << "\" band=\"" << band << "\">\n"
-        << "    <ColorInterp>" << (band == 1 ? "Gray" : "Alpha") << "</ColorInterp>\n";
+    VrtBandHead(band, type, &xml);
     for (const std::string& overview : overview_paths) {
       xml << "    <Overview><SourceFilename relativeToVRT=\"1\">" << XmlEscape(overview)
           << "</SourceFilename><SourceBand>" << band << "</SourceBand></Overview>\n";
     }
-    for (const TileIndex& tile : tiles) {
-      // Tile origin in this level's pixels, relative to the VRT; clip what lies outside.
-      const int64_t dx = tile.second * t - x0, dy = tile.first * t - y0;
-      const int64_t sx = std::max<int64_t>(0, -dx), sy = std::max<int64_t>(0, -dy);
-      const int64_t w = std::min(t - sx, width - std::max<int64_t>(0, dx));
-      const int64_t h = std::min(t - sy, height - std::max<int64_t>(0, dy));
-      if (w <= 0 || h <= 0) continue;
-      xml << "    <SimpleSource>\n      <SourceFilename relativeToVRT=\"1\">" << prefix
-          << tile.first << "_" << tile.second << ".tif</SourceFilename>\n"
-          << "      <SourceBand>" << band << "</SourceBand>\n"
-          << "      <SourceProperties RasterXSize=\"" << t << "\" RasterYSize=\"" << t
-          << "\" DataType=\"" << type << "\" BlockXSize=\"" << std::min<int64_t>(kBlockSize, t)
-          << "\" BlockYSize=\"" << std::min<int64_t>(kBlockSize, t) << "\"/>\n"
-          << "      <SrcRect xOff=\"" << sx << "\" yOff=\"" << sy << "\" xSize=\"" << w
-          << "\" ySize=\"" << h << "\"/>\n"
-          << "      <DstRect xOff=\"" << std::max<int64_t>(0, dx) << "\" yOff=\""
-          << std::max<int64_t>(0, dy) << "\" xSize=\"" << w << "\" ySize=\"" << h << "\"/>\n"
-          << "    </SimpleSource>\n";
+    for (const auto& [block, count] : blocks) {
+      // Block origin in this level's pixels, relative to the VRT; clipped to the VRT.
+      VrtSource(prefix + BlockVrtName(block), band, type, side, kVrtDefaultBlockSize,
+                block.second * side - x0, block.first * side - y0, width, height, &xml);
     }
     xml << "  </VRTRasterBand>\n";
   }

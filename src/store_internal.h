@@ -91,7 +91,21 @@ struct TileBounds {
 };
 TileBounds BoundsOf(const TileSet& tiles);
 
-// mosaic.vrt and the per-level overview VRTs of a generation, as XML text.
+// The level VRTs (mosaic.vrt and the overview VRTs) list blocks of kVrtBlockTiles x
+// kVrtBlockTiles tiles, each block its own VRT beside its tiles with the block's whole extent
+// as geometry: a publish rewrites the blocks that gained tiles and a level VRT of one source per
+// block, not one per tile (a flight's index grows with its length; an hour has ~10^5 tiles).
+inline constexpr int64_t kVrtBlockTiles = 16;
+using BlockIndex = std::pair<int64_t, int64_t>;  // (block row, block col), signed.
+BlockIndex BlockOf(const TileIndex& tile);
+// File name of a block VRT, beside the level's tiles: block_r<row>_c<col>.vrt.
+std::string BlockVrtName(const BlockIndex& block);
+// Tiles of `level` in each block that has any.
+std::map<BlockIndex, int64_t> BlockTileCounts(const TileSet& tiles);
+// One block's VRT at `level`: the block's extent, a source per tile of the level in it.
+std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex& block);
+// mosaic.vrt (level 0) and the per-level overview VRTs of a generation, as XML text: one
+// source per block VRT of the level.
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
                           const std::vector<std::string>& overview_paths);
 // The QGIS layer definition: mosaic.vrt with a thermal ramp and auto-refresh, and the frames.

@@ -205,6 +205,11 @@ struct TileStore::Impl {
   void RememberOverview(int level, const TileIndex& tile, const TileImage& image);
   int LevelsFor(const TileSet& level0) const;
   void WriteIndex(store::Manifest* next, int64_t generation);
+  // Writer thread only: tiles per block as each block VRT was last written (per level), and
+  // the index figures of the publishes so far.
+  std::vector<std::map<store::BlockIndex, int64_t>> block_tile_counts;
+  int64_t index_bytes = 0;
+  double index_ms = 0.0;
   void WriteQlr(const store::Manifest& m) {
     double lo = m.display_lo, hi = m.display_hi;
     if (hi <= lo) {  // Nothing painted yet: the type's range.
@@ -312,12 +317,28 @@ std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
 }
 
 void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
+  const Clock::time_point start = Clock::now();
   store::Manifest& m = *next;
   const int levels = static_cast<int>(m.levels.size()) - 1;
   m.generation = generation;
   m.published_utc = store::UtcNow();
   m.overview_vrts.clear();
   const store::TileBounds bounds = store::BoundsOf(m.levels[0]);
+  // Block VRTs first (the level VRTs name them): only those that gained tiles since this
+  // process last wrote them; after an open, each once (a store of an older layout has none).
+  block_tile_counts.resize(m.levels.size());
+  for (int level = 0; level <= levels; ++level) {
+    for (const auto& [block, count] : store::BlockTileCounts(m.levels[level])) {
+      auto& written = block_tile_counts[level];
+      const auto it = written.find(block);
+      if (it != written.end() && it->second == count) continue;
+      const std::string xml = store::BuildBlockVrt(m, level, block);
+      store::WriteFileAtomic(root / ("tiles/" + std::to_string(level)) / store::BlockVrtName(block),
+                             xml, options.durable);
+      index_bytes += static_cast<int64_t>(xml.size());
+      written[block] = count;
+    }
+  }
   for (int level = 1; level <= levels; ++level) {
     // Named by the ground it spans, not by generation: a later generation with the same extent
     // replaces the file (more sources, same geometry), so a reader holding an older mosaic.vrt
@@ -326,13 +347,17 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
                                  std::to_string(bounds.row0) + "_c" + std::to_string(bounds.col0) +
                                  "_" + std::to_string(bounds.row1 - bounds.row0) + "x" +
                                  std::to_string(bounds.col1 - bounds.col0) + ".vrt";
-    store::WriteFileAtomic(root / relative, store::BuildLevelVrt(m, level, bounds, {}),
-                           options.durable);
+    const std::string xml = store::BuildLevelVrt(m, level, bounds, {});
+    store::WriteFileAtomic(root / relative, xml, options.durable);
+    index_bytes += static_cast<int64_t>(xml.size());
     m.overview_vrts.push_back(relative);
   }
-  store::WriteFileAtomic(root / "mosaic.vrt", store::BuildLevelVrt(m, 0, bounds, m.overview_vrts),
-                         options.durable);
-  store::WriteFileAtomic(root / "manifest.json", store::ManifestToJson(m), options.durable);
+  const std::string vrt = store::BuildLevelVrt(m, 0, bounds, m.overview_vrts);
+  store::WriteFileAtomic(root / "mosaic.vrt", vrt, options.durable);
+  const std::string json = store::ManifestToJson(m);
+  store::WriteFileAtomic(root / "manifest.json", json, options.durable);
+  index_bytes += static_cast<int64_t>(vrt.size() + json.size());
+  index_ms += MsSince(start);
 }
 
 void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
@@ -498,6 +523,8 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   lock.lock();
   stats.writer_busy_ms += busy_ms;
   stats.writer_cpu_ms += cpu_ms;
+  stats.index_ms_total = index_ms;
+  stats.index_bytes_total = index_bytes;
   stats.tiles_written += tiles_written;
   stats.bytes_written += bytes;
   if (error.empty()) {

@@ -17,6 +17,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <iterator>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -212,6 +213,72 @@ TEST(TileStoreTest, AReaderOpenedEarlyStillReadsOverviewsAfterTheMosaicGrew) {
   EXPECT_EQ(errors.count, 0) << errors.last;
   GDALClose(early);
   store->Close();
+}
+
+// The index a publish writes grows with what changed, not with the store (docs/store.md,
+// "mosaic.vrt"): the level VRTs name blocks of 16 x 16 tiles, each block its own VRT, and only
+// blocks that gained tiles are rewritten. A flat VRT (one source per tile) would rewrite ~1 KB
+// per tile and band on every publish: ~100 MB for the ~10^5 tiles of an hour's flight.
+TEST(TileStoreTest, IndexWrittenPerPublishIsBoundedByTheChangeNotTheStore) {
+  const fs::path dir = FreshDir("index_cost") / "s.irmosaic";
+  constexpr int kTile = 64;
+  auto store = TileStore::Open(Options(dir, kTile), Georef());
+  // 48 x 47 = 2256 tiles in 9 blocks, painted in strips with publishes between (as a flight).
+  const cv::Size strip(47 * kTile, 8 * kTile);
+  for (int row = 0; row < 48; row += 8) {
+    store->Paint(cv::Mat(strip, CV_16U, cv::Scalar(1000 + row)),
+                 cv::Mat(strip, CV_32F, cv::Scalar(1.0f)), {0, row * kTile});
+    store->WaitPublished(store->RequestPublish());
+  }
+  const int64_t before = store->stats().index_bytes_total;
+  // One new tile in an existing block (column 47 is in block 2), one in a new block far away.
+  PaintSquare(store.get(), {47 * kTile + 8, 8}, 16, 7777);
+  PaintSquare(store.get(), {-40 * kTile + 8, 8}, 16, 8888);
+  store->WaitPublished(store->RequestPublish());
+  const int64_t published = store->stats().index_bytes_total - before;
+  std::ifstream in(dir / "manifest.json");
+  const std::string manifest((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  size_t tiles_all_levels = 0;
+  const nlohmann::json parsed = nlohmann::json::parse(manifest);
+  for (const auto& level : parsed["levels"]) {
+    tiles_all_levels += level["tiles"].size();
+  }
+  // What one source costs in a VRT (a full block VRT lists 256 tiles in two bands).
+  const int64_t block_bytes =
+      static_cast<int64_t>(fs::file_size(dir / "tiles/0" / "block_r0_c0.vrt"));
+  const int64_t source_bytes = block_bytes / (2 * 256);
+  // Beyond the manifest: the two level-0 blocks that gained a tile, their parents' blocks at
+  // the overview levels (at most two per level, each smaller than a full level-0 block), and
+  // level VRTs of a source per block.
+  const int64_t changed = static_cast<int64_t>(manifest.size()) + 2 * 2 * block_bytes;
+  EXPECT_LT(published, changed);
+  // A flat VRT would have listed every tile of every level in two bands.
+  EXPECT_LT(published, static_cast<int64_t>(tiles_all_levels) * 2 * source_bytes / 3);
+  std::ifstream vrt_in(dir / "mosaic.vrt");
+  const std::string vrt((std::istreambuf_iterator<char>(vrt_in)), std::istreambuf_iterator<char>());
+  size_t sources = 0;
+  for (size_t at = vrt.find("<SimpleSource>"); at != std::string::npos;
+       at = vrt.find("<SimpleSource>", at + 1)) {
+    ++sources;
+  }
+  EXPECT_EQ(sources, 2u * 10u);  // 9 + 1 blocks, two bands.
+
+  // GDAL reads both new tiles through the nested VRTs, with every earlier strip intact.
+  GdalErrorCount errors;
+  const Raster r = ReadThroughGdal(dir / "mosaic.vrt");
+  ASSERT_FALSE(r.data.empty()) << errors.last;
+  EXPECT_EQ(cv::countNonZero(r.data == 7777), 16 * 16);
+  EXPECT_EQ(cv::countNonZero(r.data == 8888), 16 * 16);
+  for (int row = 0; row < 48; row += 8) {
+    EXPECT_EQ(cv::countNonZero(r.data == 1000 + row), strip.area()) << row;
+  }
+  // Overviews follow at Close at the latest (overview_interval_s); level 2 through its blocks.
+  store->Close();
+  const Raster level2 = ReadThroughGdal(dir / "mosaic.vrt", 2);
+  ASSERT_FALSE(level2.data.empty()) << errors.last;
+  EXPECT_EQ(cv::countNonZero(level2.data == 7777), 4 * 4);
+  EXPECT_EQ(cv::countNonZero(level2.data == 8888), 4 * 4);
+  EXPECT_EQ(errors.count, 0) << errors.last;
 }
 
 TEST(TileStoreTest, BlendFollowsTheContractAndReadsBack) {

@@ -137,6 +137,8 @@ class IRMOSAIC_EXPORT TileStore {
     double paint_ms_total = 0.0;  // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;  // Time the writer thread spent working.
     double writer_cpu_ms = 0.0;   // CPU time of that work (the load does not inflate it).
+    double index_ms_total = 0.0;  // Of the writer's time: writing the index (VRTs, manifest).
+    int64_t index_bytes_total = 0;  // Bytes of index files written.
     double publish_p50_ms = 0.0;  // RequestPublish() to published, median.
     double publish_p99_ms = 0.0;  // ... 99th percentile.
     double publish_max_ms = 0.0;  // ... worst.
