@@ -4,6 +4,11 @@
 //
 //   flight_bench [--frames N] [--paced-frames N] [--compare 100,300] [--no-compare]
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
+//                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
+//
+// The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
+// against freshness on disk, optimizer cost against accuracy) is measured on the same frames.
+// Each Mosaicker run also scores its final placements against the simulator's truth.
 //
 // Scenarios: (1) "free": frames pushed as fast as the pipeline takes them, throughput and
 // memory at 10 %, 50 % and 100 % of the flight; (2) "paced": frames arriving at the sensor rate
@@ -42,6 +47,7 @@
 #include <thread>
 #include <vector>
 
+#include "irmosaic/evaluator.h"
 #include "irmosaic/mosaicker.h"
 #include "irmosaic/simulator.h"
 #include "test_data.h"
@@ -169,6 +175,15 @@ class Producer {
   std::thread thread_;
 };
 
+// Overrides of MosaickerOptions defaults (negative: keep the default).
+struct Tuning {
+  double publish_interval_s = -1.0;
+  int max_rerenders_per_solve = -1;
+  double rerender_threshold_px = -1.0;
+  int window_frames = -1;
+};
+Tuning g_tuning;
+
 struct RunConfig {
   int frames = 2000;
   double rate_hz = 0.0;  // 0: as fast as possible.
@@ -185,7 +200,21 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   options.mode = irmosaic::TileStoreOptions::Mode::kOverwrite;
   options.ground_height_m = sim.options().ground_height_m;
   options.fusion.optimize = config.optimize;
+  if (g_tuning.publish_interval_s >= 0) options.publish_interval_s = g_tuning.publish_interval_s;
+  if (g_tuning.max_rerenders_per_solve >= 0) {
+    options.fusion.max_rerenders_per_solve = g_tuning.max_rerenders_per_solve;
+  }
+  if (g_tuning.rerender_threshold_px >= 0) {
+    options.fusion.rerender_threshold_px = g_tuning.rerender_threshold_px;
+  }
+  if (g_tuning.window_frames > 0) options.fusion.window_frames = g_tuning.window_frames;
   std::filesystem::remove_all(config.store);
+  irmosaic::Placements truth;
+  truth.origin_lat_deg = sim.frame().origin_lat_deg();
+  truth.origin_lon_deg = sim.frame().origin_lon_deg();
+  truth.gsd_m = sim.grid().gsd_m;
+  truth.image_width = sim.camera().width;
+  truth.image_height = sim.camera().height;
   ResetPeakRss();
   const double rss_start = StatusMiB("VmRSS");
   const double cpu0 = ProcessCpuSeconds();
@@ -205,6 +234,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     Clock::time_point arrival;
     while (producer.Next(&frame, &arrival)) {
       const auto t0 = Clock::now();
+      truth.frames.push_back({frame.index, frame.time_s, frame.true_mosaic_from_image});
       const irmosaic::PushResult r =
           mosaicker.Push(frame.index, frame.time_s, frame.image, arrival);
       push_wall_s += Since(t0);
@@ -244,6 +274,16 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     const double cpu = ProcessCpuSeconds() - cpu0 - producer_cpu;
     const irmosaic::MosaickerSummary s = mosaicker.summary();
     const irmosaic::TileStore::Stats st = mosaicker.store()->stats();
+    // Final placements against the truth (truth mosaic pixels).
+    irmosaic::Placements run;
+    run.origin_lat_deg = s.origin_lat_deg;
+    run.origin_lon_deg = s.origin_lon_deg;
+    run.gsd_m = s.gsd_m;
+    for (const irmosaic::FramePlacement& p : mosaicker.Placements()) {
+      run.frames.push_back({static_cast<int>(p.index), p.time_s, p.mosaic_from_image});
+    }
+    const irmosaic::PlacementScore score =
+        irmosaic::Evaluator(truth).ScorePlacements(run, "flight_bench");
     int64_t store_bytes = 0;
     for (const auto& e : std::filesystem::recursive_directory_iterator(config.store)) {
       if (e.is_regular_file()) store_bytes += static_cast<int64_t>(e.file_size());
@@ -278,6 +318,15 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
             {"rerendered_frames", s.fusion.rerendered_frames},
             {"rss_start_mib", rss_start},
+            {"placement_mean_px", score.rmse_px.mean},
+            {"placement_p95_px", score.rmse_px.p95},
+            {"placement_max_px", score.rmse_px.max},
+            {"publish_interval_s", options.publish_interval_s},
+            {"max_rerenders_per_solve", options.fusion.max_rerenders_per_solve},
+            {"rerender_threshold_px", options.fusion.rerender_threshold_px},
+            {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
+            {"mean_painted_lag_px", s.fusion.mean_painted_lag_px},
+            {"window_frames", options.fusion.window_frames},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
   }
@@ -517,11 +566,21 @@ int main(int argc, char** argv) {
       json_path = value();
     } else if (a == "--store") {
       store = value();
+    } else if (a == "--publish-interval") {
+      g_tuning.publish_interval_s = std::stod(value());
+    } else if (a == "--max-rerenders") {
+      g_tuning.max_rerenders_per_solve = std::stoi(value());
+    } else if (a == "--rerender-threshold") {
+      g_tuning.rerender_threshold_px = std::stod(value());
+    } else if (a == "--window") {
+      g_tuning.window_frames = std::stoi(value());
     } else if (a == "--child") {
       child = value();
     } else {
       std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
-                   "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S]\n";
+                   "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
+                   "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
+                   "[--window N]\n";
       return 2;
     }
   }
@@ -588,7 +647,15 @@ int main(int argc, char** argv) {
               << "), paint " << Fixed(f["paint_ms_per_frame"], 2) << " ms/frame, store "
               << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
               << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
-              << f["frames_pos_only"].get<int64_t>() << "\n";
+              << f["frames_pos_only"].get<int64_t>() << "\n"
+              << "tiles written " << f["tiles_written"].get<int64_t>() << ", re-renders "
+              << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]
+              << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
+              << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)
+              << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
+              << " px (RMS, mean over solves)\nplacement vs truth mean " << Fixed(f["placement_mean_px"], 3) << " px, p95 "
+              << Fixed(f["placement_p95_px"], 3) << ", max " << Fixed(f["placement_max_px"], 3)
+              << "\n";
   }
 
   if (paced_frames > 0) {

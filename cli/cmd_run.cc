@@ -190,7 +190,9 @@ int RunRun(int argc, char** argv) {
        {{"solves", s.fusion.solves},
         {"max_solve_ms", s.fusion.max_solve_ms},
         {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
-        {"rerendered_frames", s.fusion.rerendered_frames}}},
+        {"rerendered_frames", s.fusion.rerendered_frames},
+        {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
+        {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},
       {"placements", placements_path}};
   const std::string report_path =

@@ -840,6 +840,31 @@ class MapFusion::Impl {
       // Pair weights are published with the placements (ResumeState reads both).
       for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
       solving_ = false;
+      // Seams on disk (for the lag figures): at each pair's overlap, where the solution puts
+      // the two frames against where they were painted. A move both frames share (the window
+      // drifting as new POS priors join) leaves the seam as it was.
+      std::vector<std::pair<Eigen::Vector2d, Eigen::Vector2d>> overlap(pairs.size());
+      for (size_t k = 0; k < pairs.size(); ++k) {
+        const Pair& p = pairs[k];
+        Eigen::Vector2d pa = Eigen::Vector2d::Zero(), pb = Eigen::Vector2d::Zero();
+        for (size_t t = 0; t < p.base_points.size(); ++t) {
+          pa += p.base_points[t];
+          pb += p.template_points[t];
+        }
+        const double n = static_cast<double>(std::max<size_t>(1, p.base_points.size()));
+        overlap[k] = {pa / n, pb / n};
+      }
+      // Seam lag of pair k when its frames are placed by `base_h` and `templ_h`.
+      auto seam_lag_of = [&](size_t k, const Eigen::Matrix3d& base_h,
+                             const Eigen::Matrix3d& templ_h) {
+        const Pair& p = pairs[k];
+        const auto& [pa, pb] = overlap[k];
+        const Eigen::Vector2d lag_a =
+            ApplyHomography(base_h, pa) - ApplyHomography(p.base->rendered.mosaic_from_image, pa);
+        const Eigen::Vector2d lag_b = ApplyHomography(templ_h, pb) -
+                                      ApplyHomography(p.templ->rendered.mosaic_from_image, pb);
+        return (lag_a - lag_b).norm();
+      };
       for (const auto& f : frames) {
         FramePlacement& live = placements_[f->slot];
         // Frames placed while we solved were chained from the old placement of their
@@ -875,6 +900,29 @@ class MapFusion::Impl {
         moved = std::move(kept);
       }
       for (auto& [frame, placement] : moved) frame->rendered = placement;
+      if (!final_solve && last_slot == SIZE_MAX) {
+        // The lag the disk keeps after this solve's re-renders (re-rendered frames have none).
+        double painted_sum_sq = 0.0;
+        for (const auto& f : frames) {
+          const double lag = CornerShift(f->rendered.mosaic_from_image,
+                                         placements_[f->slot].mosaic_from_image, camera_);
+          painted_sum_sq += lag * lag;
+        }
+        double seam_after_sq = 0.0;
+        int seam_count = 0;
+        for (size_t k = 0; k < pairs.size(); ++k) {
+          if (pairs[k].base_points.empty()) continue;
+          const double lag = seam_lag_of(k, placements_[pairs[k].base->slot].mosaic_from_image,
+                                         placements_[pairs[k].templ->slot].mosaic_from_image);
+          seam_after_sq += lag * lag;
+          ++seam_count;
+        }
+        const double n = static_cast<double>(lag_solves_++);
+        const double painted_rms = std::sqrt(painted_sum_sq / std::max<size_t>(1, frames.size()));
+        const double seam_rms = std::sqrt(seam_after_sq / std::max(1, seam_count));
+        stats_.mean_painted_lag_px = (stats_.mean_painted_lag_px * n + painted_rms) / (n + 1);
+        stats_.mean_seam_lag_px = (stats_.mean_seam_lag_px * n + seam_rms) / (n + 1);
+      }
       const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
       stats_.solves += 1;
       stats_.last_solve_ms = ms;
@@ -1002,6 +1050,7 @@ class MapFusion::Impl {
   }
 
   static constexpr size_t kMaxHeldWindows = 4;
+  int64_t lag_solves_ = 0;  // Background solves averaged into the lag figures (under mu_).
 
   FusionOptions options_;
   CameraModel camera_;

@@ -133,6 +133,31 @@ TEST_P(CorruptedPairTest, IsDownWeighted) {
 
 INSTANTIATE_TEST_SUITE_P(MapFusionTest, CorruptedPairTest, ::testing::Values(3.0, 6.0, 12.0));
 
+// The lag figures say how far the disk is behind the solution: with no re-render budget every
+// frame is re-rendered once it moved more than the threshold, so its seams on disk are off by
+// less than the threshold at each end (RMS well below); with a budget of one frame per solve the
+// disk falls behind.
+TEST(MapFusionTest, SeamLagOnDiskFollowsTheRerenderBudget) {
+  const Sweep s = MakeSweep(240, 6, 2.0, 0.3, 3);
+  FusionOptions options;
+  options.solve_every_frames = 10;
+  options.max_rerenders_per_solve = 0;
+  const RunResult unlimited = RunFusion(s, options, IdealRegistrar(s, 0.15, 5), 200.0);
+  options.max_rerenders_per_solve = 1;
+  const RunResult one = RunFusion(s, options, IdealRegistrar(s, 0.15, 5), 200.0);
+  std::printf(
+      "seam lag: unlimited %.3f px (frames %.3f, %lld re-renders), one per solve %.3f px (frames "
+      "%.3f, %lld re-renders)\n",
+      unlimited.stats.mean_seam_lag_px, unlimited.stats.mean_painted_lag_px,
+      static_cast<long long>(unlimited.stats.rerendered_frames), one.stats.mean_seam_lag_px,
+      one.stats.mean_painted_lag_px, static_cast<long long>(one.stats.rerendered_frames));
+  ASSERT_GT(unlimited.stats.solves, 3);
+  EXPECT_LE(unlimited.stats.mean_painted_lag_px, options.rerender_threshold_px);
+  EXPECT_LE(unlimited.stats.mean_seam_lag_px, 2 * options.rerender_threshold_px);
+  EXPECT_GT(one.stats.mean_seam_lag_px, 2.0 * unlimited.stats.mean_seam_lag_px);
+  EXPECT_GT(one.stats.mean_painted_lag_px, options.rerender_threshold_px);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;

@@ -118,6 +118,12 @@ struct FusionStats {
   int64_t pairs_ok = 0;
   int64_t solves = 0;
   int64_t rerendered_frames = 0;
+  // What the mosaic on disk lags behind the placements after each background solve's
+  // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
+  // seam lag (the base frame's move since painted less the template's, at the overlap), and
+  // the RMS over the window's frames of their move since painted (largest corner).
+  double mean_seam_lag_px = 0.0;
+  double mean_painted_lag_px = 0.0;
   double last_solve_ms = 0.0;
   double max_solve_ms = 0.0;
   double total_solve_ms = 0.0;
