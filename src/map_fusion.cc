@@ -17,6 +17,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "fusion_cost.h"
 #include "irmosaic/frame_geometry.h"
 
 namespace irmosaic {
@@ -31,88 +32,10 @@ double ThreadCpuMs() {
   return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
 }
 
-// Image-point normalization for the homography update: n = (p - c) / s.
-struct Normalizer {
-  double cx = 0.0, cy = 0.0, s = 1.0;
-};
-
-// Maps image point p through H_ref * S^-1 * (I + D(delta)) * S (delta: 8 parameters).
-template <typename T>
-void MapPoint(const Eigen::Matrix3d& h_ref, const Normalizer& n, const T* delta,
-              const Eigen::Vector2d& p, T* out) {
-  const T nx = T((p.x() - n.cx) / n.s), ny = T((p.y() - n.cy) / n.s);
-  const T mx = (T(1) + delta[0]) * nx + delta[1] * ny + delta[2];
-  const T my = delta[3] * nx + (T(1) + delta[4]) * ny + delta[5];
-  const T mw = delta[6] * nx + delta[7] * ny + T(1);
-  // Back to pixel homogeneous coordinates, then through the reference homography.
-  const T ux = T(n.s) * mx + T(n.cx) * mw, uy = T(n.s) * my + T(n.cy) * mw, uw = mw;
-  const T qx = T(h_ref(0, 0)) * ux + T(h_ref(0, 1)) * uy + T(h_ref(0, 2)) * uw;
-  const T qy = T(h_ref(1, 0)) * ux + T(h_ref(1, 1)) * uy + T(h_ref(1, 2)) * uw;
-  const T qw = T(h_ref(2, 0)) * ux + T(h_ref(2, 1)) * uy + T(h_ref(2, 2)) * uw;
-  out[0] = qx / qw;
-  out[1] = qy / qw;
-}
-
-Eigen::Matrix3d ApplyDelta(const Eigen::Matrix3d& h_ref, const Normalizer& n, const double* d) {
-  Eigen::Matrix3d s, s_inv, update;
-  s << 1.0 / n.s, 0, -n.cx / n.s, 0, 1.0 / n.s, -n.cy / n.s, 0, 0, 1;
-  s_inv << n.s, 0, n.cx, 0, n.s, n.cy, 0, 0, 1;
-  update << 1 + d[0], d[1], d[2], d[3], 1 + d[4], d[5], d[6], d[7], 1;
-  Eigen::Matrix3d h = h_ref * s_inv * update * s;
-  return h / h(2, 2);
-}
-
-// A tie point: both frames' placements should put it at the same mosaic pixel.
-struct TieCost {
-  TieCost(const Eigen::Matrix3d& ha, const Eigen::Matrix3d& hb, const Normalizer& n,
-          const Eigen::Vector2d& pa, const Eigen::Vector2d& pb, double inv_sigma)
-      : ha_(ha), hb_(hb), n_(n), pa_(pa), pb_(pb), inv_sigma_(inv_sigma) {}
-  template <typename T>
-  bool operator()(const T* da, const T* db, T* residual) const {
-    T qa[2], qb[2];
-    MapPoint(ha_, n_, da, pa_, qa);
-    MapPoint(hb_, n_, db, pb_, qb);
-    residual[0] = (qa[0] - qb[0]) * T(inv_sigma_);
-    residual[1] = (qa[1] - qb[1]) * T(inv_sigma_);
-    return true;
-  }
-  Eigen::Matrix3d ha_, hb_;
-  Normalizer n_;
-  Eigen::Vector2d pa_, pb_;
-  double inv_sigma_;
-};
-
-// POS prior: the frame's corners and centre stay near where POS puts them, whitened by the
-// square-root information of the POS error (FusionFrame::prior_sqrt_information). POS errors
-// move a footprint mostly as a whole and barely change its shape; tie points in a narrow
-// overlap strip cannot fix a frame's shape, so an isotropic prior leaves the network floppy.
-struct PriorCost {
-  PriorCost(const Eigen::Matrix3d& h_ref, const Normalizer& n,
-            std::array<Eigen::Vector2d, 5> points, const Eigen::Matrix<double, 10, 1>& targets,
-            const Eigen::Matrix<double, 10, 10>& sqrt_info)
-      : h_ref_(h_ref), n_(n), points_(points), targets_(targets), sqrt_info_(sqrt_info) {}
-  template <typename T>
-  bool operator()(const T* d, T* residual) const {
-    T e[10];
-    for (int k = 0; k < 5; ++k) {
-      T q[2];
-      MapPoint(h_ref_, n_, d, points_[k], q);
-      e[2 * k] = q[0] - T(targets_(2 * k));
-      e[2 * k + 1] = q[1] - T(targets_(2 * k + 1));
-    }
-    for (int r = 0; r < 10; ++r) {
-      T sum = T(0);
-      for (int c = 0; c <= r; ++c) sum += T(sqrt_info_(r, c)) * e[c];  // Lower triangular.
-      residual[r] = sum;
-    }
-    return true;
-  }
-  Eigen::Matrix3d h_ref_;
-  Normalizer n_;
-  std::array<Eigen::Vector2d, 5> points_;  // Four corners, then the centre.
-  Eigen::Matrix<double, 10, 1> targets_;
-  Eigen::Matrix<double, 10, 10> sqrt_info_;
-};
+using fusion::ApplyDelta;
+using fusion::Normalizer;
+using fusion::PriorCost;
+using fusion::TieCost;
 
 // Mean of a small patch around an undistorted point (for radiometric ties); NaN if outside.
 double PatchMean(const cv::Mat& image, const CameraModel& camera, const Eigen::Vector2d& p,
@@ -737,10 +660,10 @@ class MapFusion::Impl {
           new ceres::ScaledLoss(nullptr, pair_weight.back(), ceres::TAKE_OWNERSHIP),
           ceres::TAKE_OWNERSHIP));
       for (size_t t = 0; t < p.base_points.size(); ++t) {
-        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<TieCost, 2, 8, 8>(new TieCost(
-                                     current[a].mosaic_from_image, current[b].mosaic_from_image,
-                                     normalizer_, p.base_points[t], p.template_points[t], inv_tie)),
-                                 pair_loss.back().get(), delta[a].data(), delta[b].data());
+        problem.AddResidualBlock(
+            new TieCost(current[a].mosaic_from_image, current[b].mosaic_from_image, normalizer_,
+                        p.base_points[t], p.template_points[t], inv_tie),
+            pair_loss.back().get(), delta[a].data(), delta[b].data());
       }
     }
     const std::array<Eigen::Vector2d, 5> points = {
@@ -758,10 +681,9 @@ class MapFusion::Impl {
       for (int k = 0; k < 5; ++k) {
         targets.segment<2>(2 * k) = ApplyHomography(current[slot].pos_mosaic_from_image, points[k]);
       }
-      problem.AddResidualBlock(
-          new ceres::AutoDiffCostFunction<PriorCost, 10, 8>(new PriorCost(
-              current[slot].mosaic_from_image, normalizer_, points, targets, prior_info.at(slot))),
-          nullptr, d.data());
+      problem.AddResidualBlock(new PriorCost(current[slot].mosaic_from_image, normalizer_, points,
+                                             targets, prior_info.at(slot)),
+                               nullptr, d.data());
     }
     ceres::Solver::Options solver;
     ceres::StringToLinearSolverType(options_.linear_solver, &solver.linear_solver_type);

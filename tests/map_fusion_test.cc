@@ -2,6 +2,7 @@
 // error and chaining drift; a corrupted pair is down-weighted; gains are compensated.
 #include "irmosaic/map_fusion.h"
 
+#include <ceres/autodiff_cost_function.h>
 #include <gtest/gtest.h>
 
 #include <chrono>
@@ -10,6 +11,7 @@
 #include <random>
 #include <thread>
 
+#include "../src/fusion_cost.h"
 #include "fusion_sweep.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -156,6 +158,177 @@ TEST(MapFusionTest, SeamLagOnDiskFollowsTheRerenderBudget) {
   EXPECT_LE(unlimited.stats.mean_seam_lag_px, 2 * options.rerender_threshold_px);
   EXPECT_GT(one.stats.mean_seam_lag_px, 2.0 * unlimited.stats.mean_seam_lag_px);
   EXPECT_GT(one.stats.mean_painted_lag_px, options.rerender_threshold_px);
+}
+
+// The optimizer's costs as first written, differentiated by autodiff: the update applied in
+// normalized coordinates, back to pixels, then through the reference homography (a different
+// order of products from src/fusion_cost.h, so a slip in either shows).
+template <typename T>
+void ReferenceMapPoint(const Eigen::Matrix3d& h_ref, const fusion::Normalizer& n, const T* delta,
+                       const Eigen::Vector2d& p, T* out) {
+  const T nx = T((p.x() - n.cx) / n.s), ny = T((p.y() - n.cy) / n.s);
+  const T mx = (T(1) + delta[0]) * nx + delta[1] * ny + delta[2];
+  const T my = delta[3] * nx + (T(1) + delta[4]) * ny + delta[5];
+  const T mw = delta[6] * nx + delta[7] * ny + T(1);
+  const T ux = T(n.s) * mx + T(n.cx) * mw, uy = T(n.s) * my + T(n.cy) * mw, uw = mw;
+  const T qx = T(h_ref(0, 0)) * ux + T(h_ref(0, 1)) * uy + T(h_ref(0, 2)) * uw;
+  const T qy = T(h_ref(1, 0)) * ux + T(h_ref(1, 1)) * uy + T(h_ref(1, 2)) * uw;
+  const T qw = T(h_ref(2, 0)) * ux + T(h_ref(2, 1)) * uy + T(h_ref(2, 2)) * uw;
+  out[0] = qx / qw;
+  out[1] = qy / qw;
+}
+
+struct ReferenceTie {
+  template <typename T>
+  bool operator()(const T* da, const T* db, T* residual) const {
+    T qa[2], qb[2];
+    ReferenceMapPoint(ha, n, da, pa, qa);
+    ReferenceMapPoint(hb, n, db, pb, qb);
+    residual[0] = (qa[0] - qb[0]) * T(inv_sigma);
+    residual[1] = (qa[1] - qb[1]) * T(inv_sigma);
+    return true;
+  }
+  Eigen::Matrix3d ha, hb;
+  fusion::Normalizer n;
+  Eigen::Vector2d pa, pb;
+  double inv_sigma;
+};
+
+struct ReferencePrior {
+  template <typename T>
+  bool operator()(const T* d, T* residual) const {
+    T e[10];
+    for (int k = 0; k < 5; ++k) {
+      T q[2];
+      ReferenceMapPoint(h, n, d, points[k], q);
+      e[2 * k] = q[0] - T(targets(2 * k));
+      e[2 * k + 1] = q[1] - T(targets(2 * k + 1));
+    }
+    for (int r = 0; r < 10; ++r) {
+      T sum = T(0);
+      for (int c = 0; c <= r; ++c) sum += T(sqrt_info(r, c)) * e[c];
+      residual[r] = sum;
+    }
+    return true;
+  }
+  Eigen::Matrix3d h;
+  fusion::Normalizer n;
+  std::array<Eigen::Vector2d, 5> points;
+  Eigen::Matrix<double, 10, 1> targets;
+  Eigen::Matrix<double, 10, 10> sqrt_info;
+};
+
+// Largest difference between two arrays relative to the largest magnitude in `expected`.
+double RelativeDifference(const double* actual, const double* expected, int size) {
+  double difference = 0.0, scale = 1e-300;
+  for (int k = 0; k < size; ++k) {
+    difference = std::max(difference, std::abs(actual[k] - expected[k]));
+    scale = std::max(scale, std::abs(expected[k]));
+  }
+  return difference / scale;
+}
+
+// A placement as the fusion meets them: about 1 mosaic px per image px, rotated, far from the
+// mosaic origin, a little perspective.
+Eigen::Matrix3d RandomPlacement(std::mt19937& rng) {
+  std::normal_distribution<double> noise(0.0, 1.0);
+  const double angle = 3.0 * noise(rng), scale = 1.0 + 0.2 * noise(rng);
+  Eigen::Matrix3d h;
+  h << scale * std::cos(angle), -scale * std::sin(angle), 5000.0 + 2000.0 * noise(rng),
+      scale * std::sin(angle), scale * std::cos(angle), 3000.0 + 2000.0 * noise(rng),
+      2e-5 * noise(rng), 2e-5 * noise(rng), 1.0;
+  return h;
+}
+
+TEST(MapFusionTest, AnalyticCostJacobiansMatchAutodiff) {
+  const fusion::Normalizer n{319.5, 255.5, 320.0};
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> pixel_x(0.0, 639.0), pixel_y(0.0, 511.0);
+  std::normal_distribution<double> noise(0.0, 1.0);
+  double worst_residual = 0.0, worst_jacobian = 0.0;
+  for (int trial = 0; trial < 200; ++trial) {
+    // Deltas from zero (the first iteration of each solve) to well past what a solve moves.
+    std::array<double, 8> da{}, db{};
+    const double delta_scale = trial == 0 ? 0.0 : 0.05 * (trial % 4) / 3.0;
+    for (int k = 0; k < 8; ++k) {
+      da[k] = delta_scale * noise(rng) * (k >= 6 ? 0.1 : 1.0);
+      db[k] = delta_scale * noise(rng) * (k >= 6 ? 0.1 : 1.0);
+    }
+    const double* parameters[2] = {da.data(), db.data()};
+
+    ReferenceTie tie{RandomPlacement(rng),
+                     RandomPlacement(rng),
+                     n,
+                     {pixel_x(rng), pixel_y(rng)},
+                     {pixel_x(rng), pixel_y(rng)},
+                     1.0 / (0.1 + std::abs(noise(rng)))};
+    const fusion::TieCost analytic_tie(tie.ha, tie.hb, n, tie.pa, tie.pb, tie.inv_sigma);
+    const ceres::AutoDiffCostFunction<ReferenceTie, 2, 8, 8> autodiff_tie(new ReferenceTie(tie));
+    double r_analytic[2], r_autodiff[2], ja[16], jb[16], ja_ref[16], jb_ref[16];
+    double* jacobians[2] = {ja, jb};
+    double* jacobians_ref[2] = {ja_ref, jb_ref};
+    ASSERT_TRUE(analytic_tie.Evaluate(parameters, r_analytic, jacobians));
+    ASSERT_TRUE(autodiff_tie.Evaluate(parameters, r_autodiff, jacobians_ref));
+    // Residuals are compared on the scale of the mapped points (mosaic px / sigma): a residual
+    // near zero is a difference of two large numbers.
+    const double point_scale = tie.inv_sigma * 1e4;
+    for (int k = 0; k < 2; ++k) {
+      worst_residual =
+          std::max(worst_residual, std::abs(r_analytic[k] - r_autodiff[k]) / point_scale);
+    }
+    worst_jacobian = std::max(
+        {worst_jacobian, RelativeDifference(ja, ja_ref, 16), RelativeDifference(jb, jb_ref, 16)});
+    // The same residual without Jacobians, and with one block held constant (frozen frames).
+    double r_plain[2];
+    ASSERT_TRUE(analytic_tie.Evaluate(parameters, r_plain, nullptr));
+    EXPECT_EQ(r_plain[0], r_analytic[0]);
+    EXPECT_EQ(r_plain[1], r_analytic[1]);
+    double jb_only[16];
+    double* one_block[2] = {nullptr, jb_only};
+    ASSERT_TRUE(analytic_tie.Evaluate(parameters, r_plain, one_block));
+    for (int k = 0; k < 16; ++k) EXPECT_EQ(jb_only[k], jb[k]);
+    // The residual is what the published placements (ApplyDelta) give.
+    const Eigen::Vector2d published =
+        (ApplyHomography(fusion::ApplyDelta(tie.ha, n, da.data()), tie.pa) -
+         ApplyHomography(fusion::ApplyDelta(tie.hb, n, db.data()), tie.pb)) *
+        tie.inv_sigma;
+    worst_residual =
+        std::max(worst_residual,
+                 (published - Eigen::Vector2d(r_analytic[0], r_analytic[1])).norm() / point_scale);
+
+    ReferencePrior prior;
+    prior.h = tie.ha;
+    prior.n = n;
+    prior.points = {Eigen::Vector2d(0, 0), Eigen::Vector2d(639, 0), Eigen::Vector2d(639, 511),
+                    Eigen::Vector2d(0, 511), Eigen::Vector2d(319.5, 255.5)};
+    for (int k = 0; k < 10; ++k) prior.targets(k) = 4000.0 + 100.0 * noise(rng);
+    // A full matrix: only its lower triangle counts, in both forms.
+    for (int r = 0; r < 10; ++r) {
+      for (int c = 0; c < 10; ++c) prior.sqrt_info(r, c) = (r == c ? 1.0 : 0.3) * noise(rng);
+    }
+    const fusion::PriorCost analytic_prior(prior.h, n, prior.points, prior.targets,
+                                           prior.sqrt_info);
+    const ceres::AutoDiffCostFunction<ReferencePrior, 10, 8> autodiff_prior(
+        new ReferencePrior(prior));
+    double p_analytic[10], p_autodiff[10], jp[80], jp_ref[80];
+    double* prior_jacobians[1] = {jp};
+    double* prior_jacobians_ref[1] = {jp_ref};
+    ASSERT_TRUE(analytic_prior.Evaluate(parameters, p_analytic, prior_jacobians));
+    ASSERT_TRUE(autodiff_prior.Evaluate(parameters, p_autodiff, prior_jacobians_ref));
+    const double prior_scale = 1e4 * prior.sqrt_info.lpNorm<Eigen::Infinity>();
+    for (int k = 0; k < 10; ++k) {
+      worst_residual =
+          std::max(worst_residual, std::abs(p_analytic[k] - p_autodiff[k]) / prior_scale);
+    }
+    worst_jacobian = std::max(worst_jacobian, RelativeDifference(jp, jp_ref, 80));
+    double p_plain[10];
+    ASSERT_TRUE(analytic_prior.Evaluate(parameters, p_plain, nullptr));
+    for (int k = 0; k < 10; ++k) EXPECT_EQ(p_plain[k], p_analytic[k]);
+  }
+  std::printf("analytic vs autodiff: residuals %.2e, Jacobians %.2e (relative)\n", worst_residual,
+              worst_jacobian);
+  EXPECT_LE(worst_residual, 1e-12);
+  EXPECT_LE(worst_jacobian, 1e-9);
 }
 
 TEST(MapFusionTest, OptionsAreValidated) {
