@@ -260,6 +260,25 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
   return true;
 }
 
+LsmResult LsmMatcher::MatchProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                                     const Eigen::Vector2d& initial_in_base,
+                                     const Eigen::Matrix2d& initial_linear) {
+  LsmResult result;
+  result.position_in_base = initial_in_base;
+  result.base_from_template_linear = initial_linear;
+  if (base.empty() || base.type() != CV_32FC1 || options_.method != LsmMethod::kFast ||
+      projected.rows() != bank_.rows() || projected.cols() != 7) {
+    result.reason = "needs a non-empty CV_32FC1 base, the FLSM method and 21 x 7 projections";
+    return result;
+  }
+  if (!initial_in_base.allFinite() || !initial_linear.allFinite() ||
+      std::abs(initial_linear.determinant()) < 1e-6) {
+    result.reason = "initial position or initial affine is not finite or singular";
+    return result;
+  }
+  return MatchFastProjected(base, projected, initial_in_base, initial_linear);
+}
+
 LsmResult LsmMatcher::Match(const cv::Mat& base, const cv::Mat& templ,
                             const Eigen::Vector2d& point_in_template,
                             const Eigen::Vector2d& initial_in_base,
@@ -408,16 +427,24 @@ bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c,
 
 LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
                                 const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
-  LsmResult result;
-  result.position_in_base = c0;
-  result.base_from_template_linear = m0;
-  const int r = radius_, n = (2 * r + 1) * (2 * r + 1);
   Eigen::MatrixXd projected;
   if (!ProjectTemplate(templ, p, &projected)) {
+    LsmResult result;
+    result.position_in_base = c0;
+    result.base_from_template_linear = m0;
     result.status = LsmResult::Status::kOutOfBounds;
     result.reason = "template patch does not fit in the template image";
     return result;
   }
+  return MatchFastProjected(base, projected, c0, m0);
+}
+
+LsmResult LsmMatcher::MatchFastProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                                         const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
+  LsmResult result;
+  result.position_in_base = c0;
+  result.base_from_template_linear = m0;
+  const int r = radius_, n = (2 * r + 1) * (2 * r + 1);
   const double inv_r = 1.0 / r;
   const int unknowns = options_.estimate_gain ? 7 : 6;
   result.condition = NormalisedCondition(projected.leftCols(unknowns));
