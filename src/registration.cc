@@ -10,6 +10,10 @@
 
 #include "irmosaic/error.h"
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 namespace irmosaic {
 namespace {
 
@@ -247,16 +251,27 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
             x_end = std::min(templ.cols - half, base.cols - half - 1 - dx);
   const int y_begin = std::max(half, half + 1 - dy),
             y_end = std::min(templ.rows - half, base.rows - half - 1 - dy);
+  cv::Rect valid_box;  // Bounding box of the valid pixels.
   if (x_end > x_begin && y_end > y_begin) {
     const cv::Rect region(x_begin, y_begin, x_end - x_begin, y_end - y_begin);
     const cv::Mat in_templ = SquaresInsideMask(templ_mask, region, half);
     const cv::Mat in_base = SquaresInsideMask(base_mask, region + cv::Point(dx, dy), half + 1);
     cv::Mat valid_region = valid_(region);
     cv::bitwise_and(in_templ, in_base, valid_region);
+    valid_box = cv::boundingRect(valid_region) + region.tl();
   }
-  const std::vector<Eigen::Vector2d> keypoints =
-      DetectKeypoints(templ_f_, valid_, options_.keypoints);
-  if (options_.equalize_gain) EqualizeGain(valid_, dx, dy);
+  // The key points and the gain see the valid box only (plus the margin the corner response
+  // reads beyond it): no scans of the whole orthoimage for the box.
+  std::vector<Eigen::Vector2d> keypoints;
+  if (!valid_box.empty()) {
+    const KeypointOptions& k = options_.keypoints;
+    const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
+    const cv::Rect window = (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
+                            cv::Rect(0, 0, templ.cols, templ.rows);
+    keypoints = DetectKeypoints(templ_f_(window), valid_(window), k);
+    for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
+  }
+  if (options_.equalize_gain) EqualizeGain(valid_box, dx, dy);
   out.keypoints = static_cast<int>(keypoints.size());
 
   // FLSM: the template projections of the key points serve the single-patch matches and the
@@ -470,9 +485,21 @@ static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer)
     const float* up = image_f.ptr<float>(y - 1);
     const float* mid = image_f.ptr<float>(y);
     const float* down = image_f.ptr<float>(y + 1);
-    for (int x = 0; x < cols; ++x) down_second[x] = up[x] - 2.0f * mid[x] + down[x];
+    int x = 0;
+#if defined(__SSE2__)
+    // The compiler's -O2 cost model leaves this loop scalar; the vector lanes do the same
+    // operations in the same order.
+    const __m128 two = _mm_set1_ps(2.0f);
+    for (; x + 4 <= cols; x += 4) {
+      const __m128 second = _mm_add_ps(
+          _mm_sub_ps(_mm_loadu_ps(up + x), _mm_mul_ps(two, _mm_loadu_ps(mid + x))),
+          _mm_loadu_ps(down + x));
+      _mm_storeu_ps(down_second + x, second);
+    }
+#endif
+    for (; x < cols; ++x) down_second[x] = up[x] - 2.0f * mid[x] + down[x];
     float lanes[kLanes] = {};
-    int x = 1;
+    x = 1;
     for (; x + kLanes < cols; x += kLanes) {
       for (int k = 0; k < kLanes; ++k) {
         lanes[k] += std::abs(down_second[x + k - 1] - 2.0f * down_second[x + k] +
@@ -949,10 +976,10 @@ FineRegistrar::DenseFit FineRegistrar::DenseRefine(const cv::Mat& base_mask,
   return fit;
 }
 
-void FineRegistrar::EqualizeGain(const cv::Mat& valid, int dx, int dy) {
+void FineRegistrar::EqualizeGain(const cv::Rect& box, int dx, int dy) {
   // One gain for the pair, from the overlap's contrast after a blur that removes most sensor
   // noise: steadier than a gain unknown per patch when the noise is heavy.
-  const cv::Rect box = cv::boundingRect(valid);
+  const cv::Mat& valid = valid_;
   const cv::Rect in_base = (box + cv::Point(dx, dy)) & cv::Rect(0, 0, base_f_.cols, base_f_.rows);
   if (box.area() < 100 || in_base.size() != box.size()) return;
   cv::Mat a, b;

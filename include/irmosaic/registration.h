@@ -155,7 +155,8 @@ class IRMOSAIC_EXPORT FineRegistrar {
   const FineRegistrationOptions& options() const { return options_; }
 
  private:
-  void EqualizeGain(const cv::Mat& valid, int dx, int dy);
+  // `box`: bounding box of valid_ (template pixels); (dx, dy): the offset to the base.
+  void EqualizeGain(const cv::Rect& box, int dx, int dy);
   struct JointFit {
     int patches = 0, inlier_patches = 0;
     double sigma_px = 1e9, residual_ratio = 1e9;
