@@ -261,7 +261,8 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     valid_box = cv::boundingRect(valid_region) + region.tl();
   }
   // The key points and the gain see the valid box only (plus the margin the corner response
-  // reads beyond it): no scans of the whole orthoimage for the box.
+  // reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two equal, or
+  // points near the window's edge would change): no scans of the whole orthoimage for the box.
   std::vector<Eigen::Vector2d> keypoints;
   if (!valid_box.empty()) {
     const KeypointOptions& k = options_.keypoints;
