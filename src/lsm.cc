@@ -8,6 +8,10 @@
 
 #include "irmosaic/error.h"
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 namespace irmosaic {
 namespace {
 
@@ -83,6 +87,45 @@ bool TemplatePatch(const cv::Mat& templ, const Eigen::Vector2d& p, int r, cv::Ma
   }
   return true;
 }
+
+// Keys (a = -0.5) cubic interpolation weights for a fractional offset t in [0, 1).
+inline void CubicWeights(float t, float* w) {
+  const float t2 = t * t, t3 = t2 * t;
+  w[0] = -0.5f * t3 + t2 - 0.5f * t;
+  w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
+  w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
+  w[3] = 0.5f * t3 - 0.5f * t2;
+}
+
+#if defined(__SSE2__)
+// The same weights for 4 offsets at once, operation for operation as CubicWeights (no fused
+// multiply-add, same association), so each lane is bit-identical to the scalar weights.
+inline void CubicWeights4(__m128 t, __m128* w) {
+  const __m128 t2 = _mm_mul_ps(t, t), t3 = _mm_mul_ps(t2, t);
+  const __m128 half = _mm_set1_ps(0.5f), minus_half = _mm_set1_ps(-0.5f);
+  w[0] = _mm_sub_ps(_mm_add_ps(_mm_mul_ps(minus_half, t3), t2), _mm_mul_ps(half, t));
+  w[1] = _mm_add_ps(
+      _mm_sub_ps(_mm_mul_ps(_mm_set1_ps(1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.5f), t2)),
+      _mm_set1_ps(1.0f));
+  w[2] = _mm_add_ps(
+      _mm_add_ps(_mm_mul_ps(_mm_set1_ps(-1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.0f), t2)),
+      _mm_mul_ps(half, t));
+  w[3] = _mm_sub_ps(_mm_mul_ps(half, t3), _mm_mul_ps(half, t2));
+}
+
+// Integer parts (truncation, as static_cast<int>) and fractional parts (as float) of the 4
+// positions start + step * (u + k), k = 0..3, computed in double as the scalar sampler does.
+inline void SplitPositions4(double start, double step, int u, int* whole, __m128* fraction) {
+  const __m128d steps = _mm_set1_pd(step), origin = _mm_set1_pd(start);
+  const __m128d lo = _mm_add_pd(origin, _mm_mul_pd(steps, _mm_set_pd(u + 1, u)));
+  const __m128d hi = _mm_add_pd(origin, _mm_mul_pd(steps, _mm_set_pd(u + 3, u + 2)));
+  const __m128i whole_lo = _mm_cvttpd_epi32(lo), whole_hi = _mm_cvttpd_epi32(hi);
+  const __m128 frac_lo = _mm_cvtpd_ps(_mm_sub_pd(lo, _mm_cvtepi32_pd(whole_lo)));
+  const __m128 frac_hi = _mm_cvtpd_ps(_mm_sub_pd(hi, _mm_cvtepi32_pd(whole_hi)));
+  *fraction = _mm_movelh_ps(frac_lo, frac_hi);
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(whole), _mm_unpacklo_epi64(whole_lo, whole_hi));
+}
+#endif
 
 }  // namespace
 
@@ -205,25 +248,33 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
   out->create(size, size, CV_32F);
   // Own bicubic sampler (Keys, a = -0.5): cv::warpAffine quantises positions to 1/32 px, and
   // bilinear interpolation biases sub-pixel positions by a few hundredths of a pixel.
-  auto weights = [](float t, float* w) {
-    const float t2 = t * t, t3 = t2 * t;
-    w[0] = -0.5f * t3 + t2 - 0.5f * t;
-    w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
-    w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
-    w[3] = 0.5f * t3 - 0.5f * t2;
-  };
+  // With SSE2, 4 output pixels go through the vector lanes at once; every lane performs the
+  // scalar sampler's operations in its order, so the patch is bit-identical either way.
   if (m == Eigen::Matrix2d::Identity()) {
     // Pure translation (the first iterations): one fractional offset for the whole patch, so
     // the bicubic kernel is separable: a horizontal pass, then a vertical one.
     const int x0 = static_cast<int>(c.x()) - r, y0 = static_cast<int>(c.y()) - r;
     float wx[4], wy[4];
-    weights(static_cast<float>(c.x() - static_cast<int>(c.x())), wx);
-    weights(static_cast<float>(c.y() - static_cast<int>(c.y())), wy);
+    CubicWeights(static_cast<float>(c.x() - static_cast<int>(c.x())), wx);
+    CubicWeights(static_cast<float>(c.y() - static_cast<int>(c.y())), wy);
     rows_.create(size + 3, size, CV_32F);
     for (int j = 0; j < size + 3; ++j) {
       const float* p = base.ptr<float>(y0 - 1 + j) + x0 - 1;
       float* h = rows_.ptr<float>(j);
-      for (int u = 0; u < size; ++u) {
+      int u = 0;
+#if defined(__SSE2__)
+      const __m128 w0 = _mm_set1_ps(wx[0]), w1 = _mm_set1_ps(wx[1]), w2 = _mm_set1_ps(wx[2]),
+                   w3 = _mm_set1_ps(wx[3]);
+      for (; u + 4 <= size; u += 4) {
+        const __m128 sum = _mm_add_ps(
+            _mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(p + u)),
+                                  _mm_mul_ps(w1, _mm_loadu_ps(p + u + 1))),
+                       _mm_mul_ps(w2, _mm_loadu_ps(p + u + 2))),
+            _mm_mul_ps(w3, _mm_loadu_ps(p + u + 3)));
+        _mm_storeu_ps(h + u, sum);
+      }
+#endif
+      for (; u < size; ++u) {
         h[u] = wx[0] * p[u] + wx[1] * p[u + 1] + wx[2] * p[u + 2] + wx[3] * p[u + 3];
       }
     }
@@ -233,31 +284,91 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       const float* h2 = rows_.ptr<float>(v + 2);
       const float* h3 = rows_.ptr<float>(v + 3);
       float* dst = out->ptr<float>(v);
-      for (int u = 0; u < size; ++u) {
+      int u = 0;
+#if defined(__SSE2__)
+      const __m128 w0 = _mm_set1_ps(wy[0]), w1 = _mm_set1_ps(wy[1]), w2 = _mm_set1_ps(wy[2]),
+                   w3 = _mm_set1_ps(wy[3]);
+      for (; u + 4 <= size; u += 4) {
+        const __m128 sum = _mm_add_ps(
+            _mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(h0 + u)),
+                                  _mm_mul_ps(w1, _mm_loadu_ps(h1 + u))),
+                       _mm_mul_ps(w2, _mm_loadu_ps(h2 + u))),
+            _mm_mul_ps(w3, _mm_loadu_ps(h3 + u)));
+        _mm_storeu_ps(dst + u, sum);
+      }
+#endif
+      for (; u < size; ++u) {
         dst[u] = wy[0] * h0[u] + wy[1] * h1[u] + wy[2] * h2[u] + wy[3] * h3[u];
       }
     }
     return true;
   }
+  const size_t step = base.step1();
   for (int v = 0; v < size; ++v) {
     float* dst = out->ptr<float>(v);
     const double row_x = c.x() + m(0, 0) * (-r) + m(0, 1) * (v - r);
     const double row_y = c.y() + m(1, 0) * (-r) + m(1, 1) * (v - r);
-    for (int u = 0; u < size; ++u) {
+    int u = 0;
+#if defined(__SSE2__)
+    for (; u + 4 <= size; u += 4) {
+      int x0[4], y0[4];
+      __m128 tx, ty, wx[4], wy[4];
+      SplitPositions4(row_x, m(0, 0), u, x0, &tx);
+      SplitPositions4(row_y, m(1, 0), u, y0, &ty);
+      CubicWeights4(tx, wx);
+      CubicWeights4(ty, wy);
+      const float* p[4];
+      for (int k = 0; k < 4; ++k) p[k] = base.ptr<float>(y0[k] - 1) + x0[k] - 1;
+      __m128 sum = _mm_setzero_ps();
+      for (int j = 0; j < 4; ++j) {
+        // Row j of the 4 x 4 neighbourhood of each lane's pixel, transposed so that tap i of
+        // all 4 lanes sits in one register.
+        __m128 tap0 = _mm_loadu_ps(p[0] + j * step), tap1 = _mm_loadu_ps(p[1] + j * step);
+        __m128 tap2 = _mm_loadu_ps(p[2] + j * step), tap3 = _mm_loadu_ps(p[3] + j * step);
+        _MM_TRANSPOSE4_PS(tap0, tap1, tap2, tap3);
+        const __m128 across = _mm_add_ps(
+            _mm_add_ps(_mm_add_ps(_mm_mul_ps(wx[0], tap0), _mm_mul_ps(wx[1], tap1)),
+                       _mm_mul_ps(wx[2], tap2)),
+            _mm_mul_ps(wx[3], tap3));
+        sum = _mm_add_ps(sum, _mm_mul_ps(wy[j], across));
+      }
+      _mm_storeu_ps(dst + u, sum);
+    }
+#endif
+    for (; u < size; ++u) {
       const double x = row_x + m(0, 0) * u, y = row_y + m(1, 0) * u;
       const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
       float wx[4], wy[4];
-      weights(static_cast<float>(x - x0), wx);
-      weights(static_cast<float>(y - y0), wy);
+      CubicWeights(static_cast<float>(x - x0), wx);
+      CubicWeights(static_cast<float>(y - y0), wy);
       float sum = 0.0f;
-      for (int j = 0; j < 4; ++j) {
-        const float* p = base.ptr<float>(y0 - 1 + j) + x0 - 1;
+      const float* p = base.ptr<float>(y0 - 1) + x0 - 1;
+      for (int j = 0; j < 4; ++j, p += step) {
         sum += wy[j] * (wx[0] * p[0] + wx[1] * p[1] + wx[2] * p[2] + wx[3] * p[3]);
       }
       dst[u] = sum;
     }
   }
   return true;
+}
+
+LsmResult LsmMatcher::MatchProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                                     const Eigen::Vector2d& initial_in_base,
+                                     const Eigen::Matrix2d& initial_linear) {
+  LsmResult result;
+  result.position_in_base = initial_in_base;
+  result.base_from_template_linear = initial_linear;
+  if (base.empty() || base.type() != CV_32FC1 || options_.method != LsmMethod::kFast ||
+      projected.rows() != bank_.rows() || projected.cols() != 7) {
+    result.reason = "needs a non-empty CV_32FC1 base, the FLSM method and 21 x 7 projections";
+    return result;
+  }
+  if (!initial_in_base.allFinite() || !initial_linear.allFinite() ||
+      std::abs(initial_linear.determinant()) < 1e-6) {
+    result.reason = "initial position or initial affine is not finite or singular";
+    return result;
+  }
+  return MatchFastProjected(base, projected, initial_in_base, initial_linear);
 }
 
 LsmResult LsmMatcher::Match(const cv::Mat& base, const cv::Mat& templ,
@@ -408,16 +519,24 @@ bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c,
 
 LsmResult LsmMatcher::MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
                                 const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
-  LsmResult result;
-  result.position_in_base = c0;
-  result.base_from_template_linear = m0;
-  const int r = radius_, n = (2 * r + 1) * (2 * r + 1);
   Eigen::MatrixXd projected;
   if (!ProjectTemplate(templ, p, &projected)) {
+    LsmResult result;
+    result.position_in_base = c0;
+    result.base_from_template_linear = m0;
     result.status = LsmResult::Status::kOutOfBounds;
     result.reason = "template patch does not fit in the template image";
     return result;
   }
+  return MatchFastProjected(base, projected, c0, m0);
+}
+
+LsmResult LsmMatcher::MatchFastProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                                         const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0) {
+  LsmResult result;
+  result.position_in_base = c0;
+  result.base_from_template_linear = m0;
+  const int r = radius_, n = (2 * r + 1) * (2 * r + 1);
   const double inv_r = 1.0 / r;
   const int unknowns = options_.estimate_gain ? 7 : 6;
   result.condition = NormalisedCondition(projected.leftCols(unknowns));

@@ -10,6 +10,10 @@
 
 #include "irmosaic/error.h"
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 namespace irmosaic {
 namespace {
 
@@ -21,6 +25,21 @@ bool UsableImage(const cv::Mat& image) {
 
 bool UsableMask(const cv::Mat& mask, const cv::Mat& image) {
   return mask.empty() || (mask.type() == CV_8UC1 && mask.size() == image.size());
+}
+
+// For each pixel of `region` (which keeps a margin of `half` inside the mask's image): 255 when
+// the square of half-size `half` around it lies entirely inside the mask (always, for an empty
+// mask), else 0. A square erosion of the overlap only, instead of an integral image of the
+// whole mask and a box sum per pixel.
+cv::Mat SquaresInsideMask(const cv::Mat& mask, const cv::Rect& region, int half) {
+  if (mask.empty()) return cv::Mat(region.size(), CV_8U, cv::Scalar(255));
+  const cv::Rect outer(region.x - half, region.y - half, region.width + 2 * half,
+                       region.height + 2 * half);
+  cv::Mat binary, eroded;
+  cv::compare(mask(outer), 0, binary, cv::CMP_NE);
+  cv::erode(binary, eroded,
+            cv::getStructuringElement(cv::MORPH_RECT, cv::Size(2 * half + 1, 2 * half + 1)));
+  return eroded(cv::Rect(half, half, region.width, region.height));
 }
 
 // Integral image of (mask != 0), or empty for an empty mask (all valid).
@@ -210,41 +229,67 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   }
   base.convertTo(base_f_, CV_32F);
   templ.convertTo(templ_f_, CV_32F);
-  if (!cv::checkRange(base_f_) || !cv::checkRange(templ_f_)) {
+  // Only float input can hold NaN or infinities; the 8- and 16-bit POS orthoimages need no
+  // pass over their whole area for it.
+  if ((base.depth() == CV_32F && !cv::checkRange(base_f_)) ||
+      (templ.depth() == CV_32F && !cv::checkRange(templ_f_))) {
     out.reason = "an image holds NaN or infinite values";
     return out;
   }
 
   // Where a key point may sit: its LSM patch (+1 px for gradients, +2 for the cubic kernel,
-  // + the margin it may move) inside the template and, shifted by the offset, inside the base.
+  // + the margin it may move) inside the template and, shifted by the offset, inside the base
+  // (one pixel more there).
   const int half = lsm_.patch_radius_px() + 3 + options_.margin_px;
-  const cv::Mat base_integral = ValidIntegral(base_mask);
-  const cv::Mat templ_integral = ValidIntegral(templ_mask);
   const int dx = static_cast<int>(std::lround(offset.x()));
   const int dy = static_cast<int>(std::lround(offset.y()));
   valid_.create(templ.size(), CV_8U);
   valid_.setTo(0);
-  // Only the overlap's bounding box can hold key points.
-  const int x_begin = std::max(half, half - dx),
-            x_end = std::min(templ.cols - half, base.cols - half - dx);
-  const int y_begin = std::max(half, half - dy),
-            y_end = std::min(templ.rows - half, base.rows - half - dy);
-  for (int y = y_begin; y < y_end; ++y) {
-    unsigned char* row = valid_.ptr<unsigned char>(y);
-    for (int x = x_begin; x < x_end; ++x) {
-      row[x] = SquareValid(templ_integral, templ.size(), x, y, half) &&
-                       SquareValid(base_integral, base.size(), x + dx, y + dy, half + 1)
-                   ? 255
-                   : 0;
-    }
+  // Only the overlap's bounding box can hold key points: the template pixels whose square
+  // lies inside the template and whose shifted square lies inside the base.
+  const int x_begin = std::max(half, half + 1 - dx),
+            x_end = std::min(templ.cols - half, base.cols - half - 1 - dx);
+  const int y_begin = std::max(half, half + 1 - dy),
+            y_end = std::min(templ.rows - half, base.rows - half - 1 - dy);
+  cv::Rect valid_box;  // Bounding box of the valid pixels.
+  if (x_end > x_begin && y_end > y_begin) {
+    const cv::Rect region(x_begin, y_begin, x_end - x_begin, y_end - y_begin);
+    const cv::Mat in_templ = SquaresInsideMask(templ_mask, region, half);
+    const cv::Mat in_base = SquaresInsideMask(base_mask, region + cv::Point(dx, dy), half + 1);
+    cv::Mat valid_region = valid_(region);
+    cv::bitwise_and(in_templ, in_base, valid_region);
+    valid_box = cv::boundingRect(valid_region) + region.tl();
   }
-  const std::vector<Eigen::Vector2d> keypoints =
-      DetectKeypoints(templ_f_, valid_, options_.keypoints);
-  if (options_.equalize_gain) EqualizeGain(valid_, dx, dy);
+  // The key points and the gain see the valid box only (plus the margin the corner response
+  // reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two equal, or
+  // points near the window's edge would change): no scans of the whole orthoimage for the box.
+  std::vector<Eigen::Vector2d> keypoints;
+  if (!valid_box.empty()) {
+    const KeypointOptions& k = options_.keypoints;
+    const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
+    const cv::Rect window = (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
+                            cv::Rect(0, 0, templ.cols, templ.rows);
+    keypoints = DetectKeypoints(templ_f_(window), valid_(window), k);
+    for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
+  }
+  if (options_.equalize_gain) EqualizeGain(valid_box, dx, dy);
   out.keypoints = static_cast<int>(keypoints.size());
 
-  for (const Eigen::Vector2d& p : keypoints) {
-    const LsmResult r = lsm_.Match(base_f_, templ_f_, p, p + offset);
+  // FLSM: the template projections of the key points serve the single-patch matches and the
+  // joint fit alike (the template does not change in between), so they are computed once.
+  const bool fast = options_.lsm.method == LsmMethod::kFast;
+  projected_.resize(keypoints.size());
+  projected_ok_.assign(keypoints.size(), false);
+  for (size_t i = 0; i < keypoints.size(); ++i) {
+    const Eigen::Vector2d& p = keypoints[i];
+    LsmResult r;
+    if (fast) {
+      projected_ok_[i] = lsm_.ProjectTemplate(templ_f_, p, &projected_[i]);
+      if (!projected_ok_[i]) continue;  // Match: out of bounds.
+      r = lsm_.MatchProjected(base_f_, projected_[i], p + offset);
+    } else {
+      r = lsm_.Match(base_f_, templ_f_, p, p + offset);
+    }
     if (!r.ok()) continue;
     TiePoint tie;
     tie.in_template = p;
@@ -291,7 +336,8 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     // The joint fit needs no corners: a dense grid of patches over the valid area carries
     // more of the signal than the capped key points.
     std::vector<Eigen::Vector2d> centres = keypoints;
-    if (options_.joint_grid_step_px > 0) {
+    const bool reuse = options_.joint_grid_step_px <= 0;
+    if (!reuse) {
       centres.clear();
       const cv::Rect box = cv::boundingRect(valid_);
       const int step = options_.joint_grid_step_px;
@@ -301,7 +347,8 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
         }
       }
     }
-    const JointFit fit = JointRefine(centres, &out.base_from_template);
+    const JointFit fit = JointRefine(centres, reuse ? &projected_ : nullptr,
+                                     reuse ? &projected_ok_ : nullptr, &out.base_from_template);
     out.joint_patches = fit.patches;
     out.joint_inlier_patches = fit.inlier_patches;
     out.joint_sigma_px = fit.sigma_px;
@@ -423,17 +470,57 @@ void FineRegistrar::MarkInliers(PairRegistration* out, double* sum_sq) const {
 }
 
 // Immerkaer's noise estimate: the image convolved with a mask that cancels planes and most
-// smooth texture; the mean absolute response gives the noise sigma.
-static double NoiseSigma(const cv::Mat& image_f) {
-  if (image_f.rows < 3 || image_f.cols < 3) return 0.0;
-  const cv::Mat kernel = (cv::Mat_<float>(3, 3) << 1, -2, 1, -2, 4, -2, 1, -2, 1);
-  cv::Mat response;
-  cv::filter2D(image_f, response, CV_32F, kernel);
-  const cv::Mat inner = response(cv::Rect(1, 1, image_f.cols - 2, image_f.rows - 2));
-  return std::sqrt(M_PI / 2.0) / 6.0 * cv::mean(cv::abs(inner))[0];
+// smooth texture; the mean absolute response gives the noise sigma. The mask is separable
+// ([1 -2 1] down, then across), so one pass with a row buffer does it: no response image the
+// size of the orthoimage, no second pass for its absolute value and mean.
+static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer) {
+  const int rows = image_f.rows, cols = image_f.cols;
+  if (rows < 3 || cols < 3) return 0.0;
+  row_buffer->resize(static_cast<size_t>(cols));
+  float* down_second = row_buffer->data();  // Vertical second difference of the current row.
+  // Independent partial sums the compiler can keep in vector lanes (a single float
+  // accumulator would be a serial chain); each lane sums at most cols / 8 values.
+  constexpr int kLanes = 8;
+  double total = 0.0;
+  for (int y = 1; y + 1 < rows; ++y) {
+    const float* up = image_f.ptr<float>(y - 1);
+    const float* mid = image_f.ptr<float>(y);
+    const float* down = image_f.ptr<float>(y + 1);
+    int x = 0;
+#if defined(__SSE2__)
+    // The compiler's -O2 cost model leaves this loop scalar; the vector lanes do the same
+    // operations in the same order.
+    const __m128 two = _mm_set1_ps(2.0f);
+    for (; x + 4 <= cols; x += 4) {
+      const __m128 second = _mm_add_ps(
+          _mm_sub_ps(_mm_loadu_ps(up + x), _mm_mul_ps(two, _mm_loadu_ps(mid + x))),
+          _mm_loadu_ps(down + x));
+      _mm_storeu_ps(down_second + x, second);
+    }
+#endif
+    for (; x < cols; ++x) down_second[x] = up[x] - 2.0f * mid[x] + down[x];
+    float lanes[kLanes] = {};
+    x = 1;
+    for (; x + kLanes < cols; x += kLanes) {
+      for (int k = 0; k < kLanes; ++k) {
+        lanes[k] += std::abs(down_second[x + k - 1] - 2.0f * down_second[x + k] +
+                             down_second[x + k + 1]);
+      }
+    }
+    double row = 0.0;
+    for (; x + 1 < cols; ++x) {
+      row += std::abs(down_second[x - 1] - 2.0f * down_second[x] + down_second[x + 1]);
+    }
+    for (int k = 0; k < kLanes; ++k) row += lanes[k];
+    total += row;
+  }
+  const double mean_abs = total / (static_cast<double>(rows - 2) * (cols - 2));
+  return std::sqrt(M_PI / 2.0) / 6.0 * mean_abs;
 }
 
 FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vector2d>& keypoints,
+                                                   const std::vector<Eigen::MatrixXd>* projected,
+                                                   const std::vector<bool>* projected_ok,
                                                    Eigen::Matrix3d* homography) {
   // All patches share one homography: their 21 filter equations each are stacked into one
   // Gauss-Newton system in its 8 parameters (plus the distortion prior), with Cauchy weights
@@ -443,11 +530,17 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   std::vector<Eigen::Vector2d> points;
   std::vector<Eigen::MatrixXd> designs;
   Eigen::Vector2d centre = Eigen::Vector2d::Zero();
-  for (const Eigen::Vector2d& p : keypoints) {
-    Eigen::MatrixXd projected;
-    if (!lsm_.ProjectTemplate(templ_f_, p, &projected)) continue;
+  for (size_t i = 0; i < keypoints.size(); ++i) {
+    const Eigen::Vector2d& p = keypoints[i];
+    if (projected != nullptr) {
+      if (!(*projected_ok)[i]) continue;
+      designs.push_back((*projected)[i]);
+    } else {
+      Eigen::MatrixXd design;
+      if (!lsm_.ProjectTemplate(templ_f_, p, &design)) continue;
+      designs.push_back(design);
+    }
     points.push_back(p);
-    designs.push_back(projected);
     centre += p;
   }
   if (points.size() < 4) return fit;
@@ -569,8 +662,8 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   cv::Scalar mean, contrast;
   cv::meanStdDev(templ_f_, mean, contrast);
   const double floor = 0.02 * contrast[0];
-  const double sigma_base = std::max(floor, NoiseSigma(base_f_));
-  const double sigma_templ = std::max(floor, NoiseSigma(templ_f_));
+  const double sigma_base = std::max(floor, NoiseSigma(base_f_, &noise_row_));
+  const double sigma_templ = std::max(floor, NoiseSigma(templ_f_, &noise_row_));
   const double expected = rhs[0].size() * (sigma_base * sigma_base + sigma_templ * sigma_templ);
   const double scale = std::max(median, expected);
   for (double e : energy) fit.inlier_patches += e <= 4.0 * scale;
@@ -884,10 +977,10 @@ FineRegistrar::DenseFit FineRegistrar::DenseRefine(const cv::Mat& base_mask,
   return fit;
 }
 
-void FineRegistrar::EqualizeGain(const cv::Mat& valid, int dx, int dy) {
+void FineRegistrar::EqualizeGain(const cv::Rect& box, int dx, int dy) {
   // One gain for the pair, from the overlap's contrast after a blur that removes most sensor
   // noise: steadier than a gain unknown per patch when the noise is heavy.
-  const cv::Rect box = cv::boundingRect(valid);
+  const cv::Mat& valid = valid_;
   const cv::Rect in_base = (box + cv::Point(dx, dy)) & cv::Rect(0, 0, base_f_.cols, base_f_.rows);
   if (box.area() < 100 || in_base.size() != box.size()) return;
   cv::Mat a, b;

@@ -110,6 +110,12 @@ class IRMOSAIC_EXPORT LsmMatcher {
                   const Eigen::Vector2d& point_in_template, const Eigen::Vector2d& initial_in_base,
                   const Eigen::Matrix2d& initial_linear = Eigen::Matrix2d::Identity());
 
+  // As Match, FLSM method only, from the template's projections at the point (what
+  // ProjectTemplate gives): a caller that also needs them for a joint solve computes them once.
+  LsmResult MatchProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                           const Eigen::Vector2d& initial_in_base,
+                           const Eigen::Matrix2d& initial_linear = Eigen::Matrix2d::Identity());
+
   // FLSM building blocks for a joint solve over many patches (FLSM method only):
   // the 21 x 7 filter projections of the template design images [Ix, x Ix, y Ix, Iy, x Iy,
   // y Iy, I] around p (x, y in units of the patch half-size); false when out of bounds.
@@ -126,6 +132,8 @@ class IRMOSAIC_EXPORT LsmMatcher {
  private:
   LsmResult MatchFast(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
                       const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0);
+  LsmResult MatchFastProjected(const cv::Mat& base, const Eigen::MatrixXd& projected,
+                               const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0);
   LsmResult MatchTraditional(const cv::Mat& base, const cv::Mat& templ, const Eigen::Vector2d& p,
                              const Eigen::Vector2d& c0, const Eigen::Matrix2d& m0);
   // Samples base at c + M x for the patch grid x into `out` ((2r+1)^2, CV_32F); false when

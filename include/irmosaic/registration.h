@@ -155,12 +155,17 @@ class IRMOSAIC_EXPORT FineRegistrar {
   const FineRegistrationOptions& options() const { return options_; }
 
  private:
-  void EqualizeGain(const cv::Mat& valid, int dx, int dy);
+  // `box`: bounding box of valid_ (template pixels); (dx, dy): the offset to the base.
+  void EqualizeGain(const cv::Rect& box, int dx, int dy);
   struct JointFit {
     int patches = 0, inlier_patches = 0;
     double sigma_px = 1e9, residual_ratio = 1e9;
   };
-  JointFit JointRefine(const std::vector<Eigen::Vector2d>& keypoints, Eigen::Matrix3d* homography);
+  // `projected`, when not null, holds ProjectTemplate's result for each of `keypoints`
+  // (entries with `projected_ok` false are skipped); null: computed here.
+  JointFit JointRefine(const std::vector<Eigen::Vector2d>& keypoints,
+                       const std::vector<Eigen::MatrixXd>* projected,
+                       const std::vector<bool>* projected_ok, Eigen::Matrix3d* homography);
   struct DenseFit {
     bool ok = false;
     int pixels = 0, iterations = 0;
@@ -177,6 +182,12 @@ class IRMOSAIC_EXPORT FineRegistrar {
   std::vector<cv::Mat> templ_levels_, base_levels_;  // Dense fit pyramids (scratch).
   cv::Mat smoothed_;
   std::vector<float> dense_rows_;  // Dense fit samples (scratch).
+  std::vector<float> noise_row_;   // NoiseSigma row buffer (scratch).
+  // FLSM template projections of the key points (ProjectTemplate), computed once for the
+  // single-patch matches and reused by the joint fit; `projected_ok_` false where the patch
+  // does not fit in the template.
+  std::vector<Eigen::MatrixXd> projected_;
+  std::vector<bool> projected_ok_;
 };
 
 #ifdef IRMOSAIC_HAS_SCD
