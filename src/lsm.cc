@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "cubic_weights.h"
 #include "irmosaic/error.h"
 
 #if defined(__SSE2__)
@@ -88,15 +89,6 @@ bool TemplatePatch(const cv::Mat& templ, const Eigen::Vector2d& p, int r, cv::Ma
   return true;
 }
 
-// Keys (a = -0.5) cubic interpolation weights for a fractional offset t in [0, 1).
-inline void CubicWeights(float t, float* w) {
-  const float t2 = t * t, t3 = t2 * t;
-  w[0] = -0.5f * t3 + t2 - 0.5f * t;
-  w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
-  w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
-  w[3] = 0.5f * t3 - 0.5f * t2;
-}
-
 #if defined(__SSE2__)
 // The same weights for 4 offsets at once, operation for operation as CubicWeights (no fused
 // multiply-add, same association), so each lane is bit-identical to the scalar weights.
@@ -104,12 +96,12 @@ inline void CubicWeights4(__m128 t, __m128* w) {
   const __m128 t2 = _mm_mul_ps(t, t), t3 = _mm_mul_ps(t2, t);
   const __m128 half = _mm_set1_ps(0.5f), minus_half = _mm_set1_ps(-0.5f);
   w[0] = _mm_sub_ps(_mm_add_ps(_mm_mul_ps(minus_half, t3), t2), _mm_mul_ps(half, t));
-  w[1] = _mm_add_ps(
-      _mm_sub_ps(_mm_mul_ps(_mm_set1_ps(1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.5f), t2)),
-      _mm_set1_ps(1.0f));
-  w[2] = _mm_add_ps(
-      _mm_add_ps(_mm_mul_ps(_mm_set1_ps(-1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.0f), t2)),
-      _mm_mul_ps(half, t));
+  w[1] =
+      _mm_add_ps(_mm_sub_ps(_mm_mul_ps(_mm_set1_ps(1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.5f), t2)),
+                 _mm_set1_ps(1.0f));
+  w[2] =
+      _mm_add_ps(_mm_add_ps(_mm_mul_ps(_mm_set1_ps(-1.5f), t3), _mm_mul_ps(_mm_set1_ps(2.0f), t2)),
+                 _mm_mul_ps(half, t));
   w[3] = _mm_sub_ps(_mm_mul_ps(half, t3), _mm_mul_ps(half, t2));
 }
 
@@ -266,11 +258,11 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       const __m128 w0 = _mm_set1_ps(wx[0]), w1 = _mm_set1_ps(wx[1]), w2 = _mm_set1_ps(wx[2]),
                    w3 = _mm_set1_ps(wx[3]);
       for (; u + 4 <= size; u += 4) {
-        const __m128 sum = _mm_add_ps(
-            _mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(p + u)),
-                                  _mm_mul_ps(w1, _mm_loadu_ps(p + u + 1))),
-                       _mm_mul_ps(w2, _mm_loadu_ps(p + u + 2))),
-            _mm_mul_ps(w3, _mm_loadu_ps(p + u + 3)));
+        const __m128 sum =
+            _mm_add_ps(_mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(p + u)),
+                                             _mm_mul_ps(w1, _mm_loadu_ps(p + u + 1))),
+                                  _mm_mul_ps(w2, _mm_loadu_ps(p + u + 2))),
+                       _mm_mul_ps(w3, _mm_loadu_ps(p + u + 3)));
         _mm_storeu_ps(h + u, sum);
       }
 #endif
@@ -289,11 +281,10 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       const __m128 w0 = _mm_set1_ps(wy[0]), w1 = _mm_set1_ps(wy[1]), w2 = _mm_set1_ps(wy[2]),
                    w3 = _mm_set1_ps(wy[3]);
       for (; u + 4 <= size; u += 4) {
-        const __m128 sum = _mm_add_ps(
-            _mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(h0 + u)),
-                                  _mm_mul_ps(w1, _mm_loadu_ps(h1 + u))),
-                       _mm_mul_ps(w2, _mm_loadu_ps(h2 + u))),
-            _mm_mul_ps(w3, _mm_loadu_ps(h3 + u)));
+        const __m128 sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(h0 + u)),
+                                                            _mm_mul_ps(w1, _mm_loadu_ps(h1 + u))),
+                                                 _mm_mul_ps(w2, _mm_loadu_ps(h2 + u))),
+                                      _mm_mul_ps(w3, _mm_loadu_ps(h3 + u)));
         _mm_storeu_ps(dst + u, sum);
       }
 #endif
@@ -326,10 +317,10 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
         __m128 tap0 = _mm_loadu_ps(p[0] + j * step), tap1 = _mm_loadu_ps(p[1] + j * step);
         __m128 tap2 = _mm_loadu_ps(p[2] + j * step), tap3 = _mm_loadu_ps(p[3] + j * step);
         _MM_TRANSPOSE4_PS(tap0, tap1, tap2, tap3);
-        const __m128 across = _mm_add_ps(
-            _mm_add_ps(_mm_add_ps(_mm_mul_ps(wx[0], tap0), _mm_mul_ps(wx[1], tap1)),
-                       _mm_mul_ps(wx[2], tap2)),
-            _mm_mul_ps(wx[3], tap3));
+        const __m128 across =
+            _mm_add_ps(_mm_add_ps(_mm_add_ps(_mm_mul_ps(wx[0], tap0), _mm_mul_ps(wx[1], tap1)),
+                                  _mm_mul_ps(wx[2], tap2)),
+                       _mm_mul_ps(wx[3], tap3));
         sum = _mm_add_ps(sum, _mm_mul_ps(wy[j], across));
       }
       _mm_storeu_ps(dst + u, sum);

@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "cubic_weights.h"
 #include "irmosaic/error.h"
 
 #if defined(__SSE2__)
@@ -492,9 +493,9 @@ static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer)
     // operations in the same order.
     const __m128 two = _mm_set1_ps(2.0f);
     for (; x + 4 <= cols; x += 4) {
-      const __m128 second = _mm_add_ps(
-          _mm_sub_ps(_mm_loadu_ps(up + x), _mm_mul_ps(two, _mm_loadu_ps(mid + x))),
-          _mm_loadu_ps(down + x));
+      const __m128 second =
+          _mm_add_ps(_mm_sub_ps(_mm_loadu_ps(up + x), _mm_mul_ps(two, _mm_loadu_ps(mid + x))),
+                     _mm_loadu_ps(down + x));
       _mm_storeu_ps(down_second + x, second);
     }
 #endif
@@ -503,8 +504,8 @@ static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer)
     x = 1;
     for (; x + kLanes < cols; x += kLanes) {
       for (int k = 0; k < kLanes; ++k) {
-        lanes[k] += std::abs(down_second[x + k - 1] - 2.0f * down_second[x + k] +
-                             down_second[x + k + 1]);
+        lanes[k] +=
+            std::abs(down_second[x + k - 1] - 2.0f * down_second[x + k] + down_second[x + k + 1]);
       }
     }
     double row = 0.0;
@@ -694,15 +695,6 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
 }
 
 namespace {
-
-// Keys (a = -0.5) cubic interpolation weights for a fractional offset t in [0, 1).
-inline void CubicWeights(float t, float* w) {
-  const float t2 = t * t, t3 = t2 * t;
-  w[0] = -0.5f * t3 + t2 - 0.5f * t;
-  w[1] = 1.5f * t3 - 2.5f * t2 + 1.0f;
-  w[2] = -1.5f * t3 + 2.0f * t2 + 0.5f * t;
-  w[3] = 0.5f * t3 - 0.5f * t2;
-}
 
 // Bicubic sample of a CV_32F image; the caller keeps (x, y) in [1, size - 3).
 inline float SampleCubic(const cv::Mat& image, double x, double y) {
