@@ -224,8 +224,8 @@ int main(int argc, char** argv) {
             << "; median of " << repeats << " fresh opens, page cache warm\n";
   if (build_s > 0) {
     std::cout << "publishing a 16 x 16 patch at this size: " << std::fixed << std::setprecision(1)
-              << g_small_publish_ms << " ms (median of 5); mosaic.vrt "
-              << vrt_bytes / 1024 << " KiB, manifest.json " << manifest_bytes / 1024 << " KiB\n";
+              << g_small_publish_ms << " ms (median of 5); mosaic.vrt " << vrt_bytes / 1024
+              << " KiB, manifest.json " << manifest_bytes / 1024 << " KiB\n";
   }
   std::cout << "\n";
   std::cout << std::left << std::setw(12) << "way in" << std::setw(32) << "what" << std::right

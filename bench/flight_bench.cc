@@ -653,9 +653,9 @@ int main(int argc, char** argv) {
               << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
               << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)
               << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
-              << " px (RMS, mean over solves)\nplacement vs truth mean " << Fixed(f["placement_mean_px"], 3) << " px, p95 "
-              << Fixed(f["placement_p95_px"], 3) << ", max " << Fixed(f["placement_max_px"], 3)
-              << "\n";
+              << " px (RMS, mean over solves)\nplacement vs truth mean "
+              << Fixed(f["placement_mean_px"], 3) << " px, p95 " << Fixed(f["placement_p95_px"], 3)
+              << ", max " << Fixed(f["placement_max_px"], 3) << "\n";
   }
 
   if (paced_frames > 0) {

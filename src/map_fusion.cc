@@ -783,8 +783,8 @@ class MapFusion::Impl {
         const auto& [pa, pb] = overlap[k];
         const Eigen::Vector2d lag_a =
             ApplyHomography(base_h, pa) - ApplyHomography(p.base->rendered.mosaic_from_image, pa);
-        const Eigen::Vector2d lag_b = ApplyHomography(templ_h, pb) -
-                                      ApplyHomography(p.templ->rendered.mosaic_from_image, pb);
+        const Eigen::Vector2d lag_b =
+            ApplyHomography(templ_h, pb) - ApplyHomography(p.templ->rendered.mosaic_from_image, pb);
         return (lag_a - lag_b).norm();
       };
       for (const auto& f : frames) {

@@ -514,8 +514,8 @@ namespace {
 constexpr int64_t kVrtDefaultBlockSize = 128;
 
 // The head of a VRT of `width` x `height` pixels with geotransform `gt`.
-void VrtHead(const Manifest& manifest, int level, const double gt[6], int64_t width,
-             int64_t height, std::ostringstream* xml) {
+void VrtHead(const Manifest& manifest, int level, const double gt[6], int64_t width, int64_t height,
+             std::ostringstream* xml) {
   *xml << "<VRTDataset rasterXSize=\"" << width << "\" rasterYSize=\"" << height << "\">\n"
        << "  <SRS dataAxisToSRSAxisMapping=\"1,2\">" << XmlEscape(manifest.georef.crs_wkt)
        << "</SRS>\n"

@@ -237,7 +237,8 @@ TEST(TileStoreTest, IndexWrittenPerPublishIsBoundedByTheChangeNotTheStore) {
   store->WaitPublished(store->RequestPublish());
   const int64_t published = store->stats().index_bytes_total - before;
   std::ifstream in(dir / "manifest.json");
-  const std::string manifest((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string manifest((std::istreambuf_iterator<char>(in)),
+                             std::istreambuf_iterator<char>());
   size_t tiles_all_levels = 0;
   const nlohmann::json parsed = nlohmann::json::parse(manifest);
   for (const auto& level : parsed["levels"]) {
