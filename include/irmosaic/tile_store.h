@@ -130,20 +130,20 @@ class IRMOSAIC_EXPORT TileStore {
 
   // Figures of the store's work so far.
   struct Stats {
-    int64_t tiles_written = 0;    // Tile files written (all levels).
-    int64_t bytes_written = 0;    // Bytes of tile files written.
-    int64_t publishes = 0;        // Generations published by this process.
-    int64_t tile_reloads = 0;     // Tiles read back from disk after leaving memory.
-    double paint_ms_total = 0.0;  // Time spent in Paint() by callers.
-    double writer_busy_ms = 0.0;  // Time the writer thread spent working.
-    double writer_cpu_ms = 0.0;   // CPU time of that work (the load does not inflate it).
-    double index_ms_total = 0.0;  // Of the writer's time: writing the index (VRTs, manifest).
+    int64_t tiles_written = 0;      // Tile files written (all levels).
+    int64_t bytes_written = 0;      // Bytes of tile files written.
+    int64_t publishes = 0;          // Generations published by this process.
+    int64_t tile_reloads = 0;       // Tiles read back from disk after leaving memory.
+    double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
+    double writer_busy_ms = 0.0;    // Time the writer thread spent working.
+    double writer_cpu_ms = 0.0;     // CPU time of that work (the load does not inflate it).
+    double index_ms_total = 0.0;    // Of the writer's time: writing the index (VRTs, manifest).
     int64_t index_bytes_total = 0;  // Bytes of index files written.
-    double publish_p50_ms = 0.0;  // RequestPublish() to published, median.
-    double publish_p99_ms = 0.0;  // ... 99th percentile.
-    double publish_max_ms = 0.0;  // ... worst.
-    size_t cached_tiles = 0;      // Level-0 tiles in memory now.
-    size_t tiles_on_disk = 0;     // Level-0 tiles in the store.
+    double publish_p50_ms = 0.0;    // RequestPublish() to published, median.
+    double publish_p99_ms = 0.0;    // ... 99th percentile.
+    double publish_max_ms = 0.0;    // ... worst.
+    size_t cached_tiles = 0;        // Level-0 tiles in memory now.
+    size_t tiles_on_disk = 0;       // Level-0 tiles in the store.
   };
   Stats stats() const;
 
