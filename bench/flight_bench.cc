@@ -5,6 +5,7 @@
 //   flight_bench [--frames N] [--paced-frames N] [--compare 100,300] [--no-compare]
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
+//                [--solve-every N]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
 // against freshness on disk, optimizer cost against accuracy) is measured on the same frames.
@@ -181,6 +182,7 @@ struct Tuning {
   int max_rerenders_per_solve = -1;
   double rerender_threshold_px = -1.0;
   int window_frames = -1;
+  int solve_every_frames = -1;
 };
 Tuning g_tuning;
 
@@ -208,6 +210,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.fusion.rerender_threshold_px = g_tuning.rerender_threshold_px;
   }
   if (g_tuning.window_frames > 0) options.fusion.window_frames = g_tuning.window_frames;
+  if (g_tuning.solve_every_frames > 0) {
+    options.fusion.solve_every_frames = g_tuning.solve_every_frames;
+  }
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
@@ -327,6 +332,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
             {"mean_painted_lag_px", s.fusion.mean_painted_lag_px},
             {"window_frames", options.fusion.window_frames},
+            {"solve_every_frames", options.fusion.solve_every_frames},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
   }
@@ -574,13 +580,15 @@ int main(int argc, char** argv) {
       g_tuning.rerender_threshold_px = std::stod(value());
     } else if (a == "--window") {
       g_tuning.window_frames = std::stoi(value());
+    } else if (a == "--solve-every") {
+      g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--child") {
       child = value();
     } else {
       std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
-                   "[--window N]\n";
+                   "[--window N] [--solve-every N]\n";
       return 2;
     }
   }
