@@ -139,6 +139,7 @@ class Producer {
 
  private:
   void Loop() {
+    pthread_setname_np(pthread_self(), "sim-render");
     for (int i = 0; i < frames_; ++i) {
       SimFrame frame = sim_.Render(i);
       Clock::time_point arrival = Clock::now();

@@ -2,6 +2,7 @@
 #include "irmosaic/tile_store.h"
 
 #include <gdal.h>
+#include <pthread.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -556,6 +557,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 }
 
 void TileStore::Impl::WriterLoop() {
+  pthread_setname_np(pthread_self(), "irm-tile-writer");
   // Background work yields to the painting (registration) threads on a busy machine.
   if (options.writer_nice > 0) {
     const int tid = static_cast<int>(::syscall(SYS_gettid));
