@@ -645,35 +645,48 @@ void FillFeature(OGRFeature* feature, const FrameRecord& record, const OGRSpatia
 
 }  // namespace
 
-void WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
-                     const std::vector<FrameRecord>& changed, bool durable) {
+namespace {
+
+// The SQLite settings of one frames.gpkg connection (GDAL reads them when it opens the file),
+// set for this thread only and cleared when the scope ends.
+class SqliteSettings {
+ public:
+  SqliteSettings(const char* journal, const char* synchronous) {
+    CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", journal);
+    CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", synchronous);
+  }
+  ~SqliteSettings() {
+    CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", nullptr);
+    CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", nullptr);
+  }
+  SqliteSettings(const SqliteSettings&) = delete;
+  SqliteSettings& operator=(const SqliteSettings&) = delete;
+};
+
+[[noreturn]] void FramesWriteFailed(const fs::path& path, const std::string& why) {
+  throw OutputError("cannot write " + path.string() + ": " + why +
+                    ". Fix: free disk space or check the folder's permissions; the published "
+                    "store is unchanged");
+}
+
+}  // namespace
+
+void CreateFramesGpkg(const fs::path& path, const std::string& crs_wkt, bool durable) {
   const fs::path temp = TemporaryPathFor(path);
-  std::error_code error;
-  const bool existed = fs::exists(path);
-  if (existed) fs::copy_file(path, temp, fs::copy_options::overwrite_existing, error);
-  const auto fail = [&](const std::string& why) {
-    std::error_code ignored;
-    fs::remove(temp, ignored);
-    throw OutputError("cannot write " + path.string() + ": " + why +
-                      ". Fix: free disk space or check the folder's permissions; the published "
-                      "store is unchanged");
-  };
-  if (error) fail(error.message());
-  // The temporary copy is private until renamed: no journal needed.
-  CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", "OFF");
-  CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", "OFF");
   GdalErrorCapture capture;
   const OGRSpatialReference srs = SpatialReferenceOf(crs_wkt);
-  GDALDataset* dataset = nullptr;
-  if (existed) {
-    dataset = GDALDataset::Open(temp.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
-  } else {
+  OGRLayer* layer = nullptr;
+  {
+    // Private until renamed: no journal needed while it is built. The header then says WAL, so
+    // the in-place updates of a running store never block, nor are blocked by, readers.
+    const SqliteSettings settings("WAL", "OFF");
     GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("GPKG");
-    dataset = driver ? driver->Create(temp.c_str(), 0, 0, 0, GDT_Unknown, nullptr) : nullptr;
+    GDALDataset* dataset =
+        driver ? driver->Create(temp.c_str(), 0, 0, 0, GDT_Unknown, nullptr) : nullptr;
     if (dataset != nullptr) {
       const char* layer_options[] = {"GEOMETRY_NAME=geom", "FID=fid", nullptr};
-      OGRLayer* layer = dataset->CreateLayer("frames", const_cast<OGRSpatialReference*>(&srs),
-                                             wkbPolygon, const_cast<char**>(layer_options));
+      layer = dataset->CreateLayer("frames", const_cast<OGRSpatialReference*>(&srs), wkbPolygon,
+                                   const_cast<char**>(layer_options));
       if (layer != nullptr) {
         OGRFieldDefn index("frame_index", OFTInteger64);
         OGRFieldDefn time("time_s", OFTReal);
@@ -686,31 +699,72 @@ void WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
           layer->CreateField(field);
         }
       }
+      GDALClose(dataset);
     }
   }
-  OGRLayer* layer = dataset ? dataset->GetLayerByName("frames") : nullptr;
-  if (layer != nullptr) {
-    dataset->StartTransaction();
-    for (const FrameRecord& record : changed) {
-      OGRFeature* existing = layer->GetFeature(record.index + 1);
-      OGRFeature feature(layer->GetLayerDefn());
-      FillFeature(&feature, record, layer->GetSpatialRef());
-      if (existing != nullptr) {
-        OGRFeature::DestroyFeature(existing);
-        if (layer->SetFeature(&feature) != OGRERR_NONE) break;
-      } else if (layer->CreateFeature(&feature) != OGRERR_NONE) {
-        break;
-      }
-    }
-    dataset->CommitTransaction();
-  }
-  if (dataset != nullptr) GDALClose(dataset);
-  CPLSetThreadLocalConfigOption("OGR_SQLITE_JOURNAL", nullptr);
-  CPLSetThreadLocalConfigOption("OGR_SQLITE_SYNCHRONOUS", nullptr);
-  if (dataset == nullptr || layer == nullptr || capture.failed()) {
-    fail(capture.failed() ? capture.message() : "GDAL cannot create the GeoPackage");
+  if (layer == nullptr || capture.failed()) {
+    std::error_code ignored;
+    fs::remove(temp, ignored);
+    FramesWriteFailed(path, capture.failed() ? capture.message()
+                                             : std::string("GDAL cannot create the GeoPackage"));
   }
   RenameOrThrow(temp, path, durable);
+}
+
+void WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
+                     const std::vector<FrameRecord>& changed, bool durable) {
+  if (!fs::exists(path)) CreateFramesGpkg(path, crs_wkt, durable);
+  if (changed.empty()) return;
+  // In place, one SQLite transaction in write-ahead-log mode: a reader sees the records of the
+  // last commit, never part of one, and a kill -9 mid-transaction leaves the last commit (SQLite
+  // rolls the rest back when the file is next opened). The work is the changed rows and their
+  // index pages, not a copy of a file that grows with the flight. "NORMAL" syncs at
+  // checkpoints only (safe against a crash of this process; durable adds power loss).
+  GdalErrorCapture capture;
+  bool written = false;
+  {
+    const SqliteSettings settings("WAL", durable ? "FULL" : "NORMAL");
+    GDALDataset* dataset = GDALDataset::Open(path.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
+    OGRLayer* layer = dataset ? dataset->GetLayerByName("frames") : nullptr;
+    if (layer != nullptr && dataset->StartTransaction() == OGRERR_NONE) {
+      written = true;
+      for (const FrameRecord& record : changed) {
+        OGRFeature* existing = layer->GetFeature(record.index + 1);
+        OGRFeature feature(layer->GetLayerDefn());
+        FillFeature(&feature, record, layer->GetSpatialRef());
+        OGRErr status = OGRERR_NONE;
+        if (existing != nullptr) {
+          OGRFeature::DestroyFeature(existing);
+          status = layer->SetFeature(&feature);
+        } else {
+          status = layer->CreateFeature(&feature);
+        }
+        if (status != OGRERR_NONE) {
+          written = false;
+          break;
+        }
+      }
+      if (!written || capture.failed()) {
+        dataset->RollbackTransaction();
+        written = false;
+      } else if (dataset->CommitTransaction() != OGRERR_NONE) {
+        written = false;
+      }
+    }
+    if (dataset != nullptr) GDALClose(dataset);
+  }
+  if (!written || capture.failed()) {
+    FramesWriteFailed(path, capture.failed() ? capture.message()
+                                             : std::string("GDAL cannot update the GeoPackage"));
+  }
+}
+
+void SettleFramesGpkg(const fs::path& path) {
+  if (!fs::exists(path)) return;
+  GdalErrorCapture capture;  // Best effort: a WAL-mode file is still a valid GeoPackage.
+  const SqliteSettings settings("DELETE", "NORMAL");
+  GDALDataset* dataset = GDALDataset::Open(path.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
+  if (dataset != nullptr) GDALClose(dataset);
 }
 
 std::vector<FrameRecord> ReadFramesGpkg(const fs::path& path) {

@@ -116,9 +116,15 @@ std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, 
 // 2 % and 98 % percentiles of the covered samples of some tiles; false if none is covered.
 bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, double* hi);
 
-// Rewrites frames.gpkg (copy of the old file + inserted/replaced records, renamed into place).
+// A new, empty frames.gpkg (built under a temporary name, renamed into place; WAL mode).
+void CreateFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt, bool durable);
+// Inserts or replaces `changed` in frames.gpkg in place, in one SQLite transaction (WAL mode), so
+// the cost follows the change, not the file; creates the file first if it is missing.
 void WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,
                      const std::vector<FrameRecord>& changed, bool durable);
+// Back to SQLite's rollback journal when the store closes: a finished frames.gpkg is one file,
+// readable from read-only media (a WAL-mode file needs its -shm beside it).
+void SettleFramesGpkg(const std::filesystem::path& path);
 // All records of a frames.gpkg (empty if the file is absent).
 std::vector<FrameRecord> ReadFramesGpkg(const std::filesystem::path& path);
 

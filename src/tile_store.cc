@@ -702,7 +702,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     s.manifest.created_utc = s.created_utc;
     s.manifest.levels.resize(1);
     // Generation 0: an empty but valid store, so readers and the .qlr work from the start.
-    store::WriteFramesGpkg(s.root / "frames.gpkg", georef.crs_wkt, {}, options.durable);
+    store::CreateFramesGpkg(s.root / "frames.gpkg", georef.crs_wkt, options.durable);
     s.WriteIndex(&s.manifest, 0);
   }
   s.manifest.compression = options.compression;
@@ -925,6 +925,7 @@ void TileStore::Close() {
     s.changed.notify_all();
   }
   s.writer.join();
+  if (error.empty()) store::SettleFramesGpkg(s.root / "frames.gpkg");
   {
     std::lock_guard<std::mutex> lock(s.mutex);
     s.closed = true;

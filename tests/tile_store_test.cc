@@ -410,6 +410,84 @@ TEST(TileStoreTest, FramesGpkgHoldsFootprintsInTheMosaicCrs) {
   EXPECT_DOUBLE_EQ(manifest["frames"]["time_max_s"].get<double>(), 0.04 * 29);
 }
 
+// Bytes this process has passed to write(2) and its kin so far, all threads (/proc/self/io).
+int64_t BytesWrittenByThisProcess() {
+  std::ifstream io("/proc/self/io");
+  std::string key;
+  int64_t value = 0;
+  while (io >> key >> value) {
+    if (key == "wchar:") return value;
+  }
+  return -1;
+}
+
+FrameRecord Footprint(int64_t index, const std::string& status) {
+  FrameRecord r;
+  r.index = index;
+  r.time_s = 0.04 * static_cast<double>(index);
+  const double x = static_cast<double>(index % 100) * 20.0, y = -static_cast<double>(index / 100);
+  r.footprint_m = {Eigen::Vector2d(x, y), {x + 50.0, y}, {x + 50.0, y - 40.0}, {x, y - 40.0}};
+  r.inliers = 40;
+  r.residual_px = 0.25;
+  r.status = status;
+  return r;
+}
+
+// An hour of flight is ~90,000 footprints: each update of frames.gpkg must cost what changed, not
+// a copy of the whole file (which grows with the flight).
+TEST(TileStoreTest, FramesUpdateWritesTheChangeNotTheWholeFile) {
+  const fs::path dir = FreshDir("frames_cost") / "s.irmosaic";
+  auto store = TileStore::Open(Options(dir), Georef());  // overview_interval_s 0: every publish.
+  int64_t next = 0;
+  // Writes 10 new records and replaces 10 old ones; returns the bytes written by that publish.
+  const auto update = [&] {
+    const int64_t old = next - 1000;  // Ten records 1000 frames back, different every time.
+    for (int k = 0; k < 10; ++k) store->PutFrameRecord(Footprint(old + k, "refined"));
+    for (int k = 0; k < 10; ++k) store->PutFrameRecord(Footprint(next++, "registered"));
+    const int64_t before = BytesWrittenByThisProcess();
+    store->WaitPublished(store->RequestPublish());
+    return BytesWrittenByThisProcess() - before;
+  };
+  const auto grow_to = [&](int64_t count) {
+    while (next < count) {
+      for (int k = 0; k < 2000 && next < count; ++k) {
+        store->PutFrameRecord(Footprint(next++, "registered"));
+      }
+      store->WaitPublished(store->RequestPublish());
+    }
+  };
+  grow_to(2000);
+  const int64_t small_store = update();
+  grow_to(16000);
+  const int64_t large_store = update();
+  const int64_t file_bytes = static_cast<int64_t>(fs::file_size(dir / "frames.gpkg"));
+  std::cout << "bytes written by a 20-record publish: " << small_store << " at 2,000 records, "
+            << large_store << " at 16,000 (frames.gpkg " << file_bytes << " bytes)\n";
+  ASSERT_GT(small_store, 0);
+  // 8x the records, the same change: the same cost within a factor 2, far below the file.
+  EXPECT_LT(large_store, 2 * small_store);
+  EXPECT_LT(large_store, file_bytes / 8);
+  store->Close();
+
+  // Every record is there, the replaced ones replaced; the closed file is one file again
+  // (SQLite rollback journal: header bytes 18-19 are 1, WAL would be 2), no -wal or -shm left.
+  GDALDataset* ds = GDALDataset::Open((dir / "frames.gpkg").c_str(), GDAL_OF_VECTOR);
+  ASSERT_NE(ds, nullptr);
+  OGRLayer* layer = ds->GetLayerByName("frames");
+  ASSERT_NE(layer, nullptr);
+  EXPECT_EQ(layer->GetFeatureCount(), next);
+  layer->SetAttributeFilter("status = 'refined'");
+  EXPECT_EQ(layer->GetFeatureCount(), 20);
+  GDALClose(ds);
+  std::ifstream gpkg(dir / "frames.gpkg", std::ios::binary);
+  char header[20] = {};
+  gpkg.read(header, sizeof(header));
+  EXPECT_EQ(header[18], 1);
+  EXPECT_EQ(header[19], 1);
+  EXPECT_FALSE(fs::exists(dir / "frames.gpkg-wal"));
+  EXPECT_FALSE(fs::exists(dir / "frames.gpkg-shm"));
+}
+
 TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
   const fs::path dir = FreshDir("memory") / "s.irmosaic";
   TileStoreOptions options = Options(dir, 64);
@@ -535,6 +613,7 @@ void WriteGenerations(const fs::path& dir, TileStoreOptions::Mode mode, int gene
     const int64_t next = store->published_generation() + 1;
     const int tiles = 2 + static_cast<int>(std::min<int64_t>(next / 3, 5));
     PaintSquare(store.get(), {-128, -128}, 128 * tiles, 1000.0 + static_cast<double>(next));
+    store->PutFrameRecord(Footprint(next, "registered"));
     store->WaitPublished(store->RequestPublish());
   }
   store->Close();
@@ -563,6 +642,18 @@ std::string CheckStoreRead(const fs::path& dir, int tile_size) {
     }
   }
   (void)level1;
+  // The footprints (updated in place, one SQLite transaction per publish, before the index):
+  // never an error, and at least the record of every generation the index had published.
+  GDALDataset* frames =
+      GDALDataset::Open((dir / "frames.gpkg").c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY);
+  OGRLayer* layer = frames ? frames->GetLayerByName("frames") : nullptr;
+  const int64_t records = layer ? layer->GetFeatureCount() : -1;
+  if (frames) GDALClose(frames);
+  if (layer == nullptr || errors.count) return "frames.gpkg unreadable: " + errors.last;
+  if (records < vrt.generation) {
+    return "frames.gpkg has " + std::to_string(records) + " records, older than generation " +
+           std::to_string(vrt.generation);
+  }
   return "";
 }
 
