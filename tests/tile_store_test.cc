@@ -308,6 +308,58 @@ TEST(TileStoreTest, BlendFollowsTheContractAndReadsBack) {
   EXPECT_EQ(cv::countNonZero(vrt.data == 0.25f * 200.0f + 0.75f * 100.0f), 10 * 10);
 }
 
+// The UInt16 blend runs 8 samples per SSE2 vector and the rest one by one: both must follow the
+// contract to the last count, with weights of every kind (NaN, negative, 0, fractional, 1, > 1),
+// values at both ends of the range, over covered and uncovered samples, across a tile border.
+TEST(TileStoreTest, UInt16BlendMatchesTheContractExactly) {
+  const fs::path dir = FreshDir("blend16") / "s.irmosaic";
+  auto store = TileStore::Open(Options(dir, 64), Georef());
+  std::mt19937 random(7);
+  const cv::Rect area(50, 30, 61, 45);  // Odd width: vector and scalar samples, 4 tiles.
+  cv::Mat base(area.size(), CV_16U), base_w(area.size(), CV_32F);
+  cv::randu(base, 0, 65536);
+  for (int y = 0; y < area.height; ++y) {
+    for (int x = 0; x < area.width; ++x) base_w.at<float>(y, x) = random() % 2 ? 1.0f : 0.0f;
+  }
+  base.at<uint16_t>(0, 0) = 65535;
+  base_w.at<float>(0, 0) = 1.0f;
+  store->Paint(base, base_w, area.tl());
+  cv::Mat patch(area.size(), CV_16U), w(area.size(), CV_32F);
+  cv::randu(patch, 0, 65536);
+  const std::array<float, 8> kinds = {
+      std::numeric_limits<float>::quiet_NaN(), -0.5f, 0.0f, 1e-6f, 0.5f, 1.0f, 1.5f, 0.0f};
+  for (int y = 0; y < area.height; ++y) {
+    for (int x = 0; x < area.width; ++x) {
+      const uint32_t pick = random() % 9;
+      w.at<float>(y, x) =
+          pick < 8 ? kinds[pick] : std::uniform_real_distribution<float>(0.0f, 1.0f)(random);
+    }
+  }
+  patch.at<uint16_t>(0, 0) = 0;
+  w.at<float>(0, 0) = 0.999f;  // Rounds to 65535 - 65535 * 0.999 = 65.5..: near a half.
+  store->Paint(patch, w, area.tl());
+  cv::Mat image, coverage;
+  store->ReadWindow(area, &image, &coverage);
+  int wrong = 0;
+  for (int y = 0; y < area.height; ++y) {
+    for (int x = 0; x < area.width; ++x) {
+      const float wx = w.at<float>(y, x);
+      const bool was = base_w.at<float>(y, x) > 0.0f;
+      uint16_t expected = was ? base.at<uint16_t>(y, x) : 0;
+      if (wx > 0.0f) {
+        expected = !was || wx >= 1.0f
+                       ? patch.at<uint16_t>(y, x)
+                       : cv::saturate_cast<uint16_t>(
+                             wx * static_cast<float>(patch.at<uint16_t>(y, x)) +
+                             (1.0f - wx) * static_cast<float>(base.at<uint16_t>(y, x)));
+      }
+      const bool covered = was || wx > 0.0f;
+      wrong += image.at<uint16_t>(y, x) != expected || (coverage.at<uchar>(y, x) != 0) != covered;
+    }
+  }
+  EXPECT_EQ(wrong, 0) << "of " << area.area() << " samples";
+}
+
 TEST(TileStoreTest, ExistingStoreNeedsResumeOrOverwriteAndResumeContinues) {
   const fs::path dir = FreshDir("resume") / "s.irmosaic";
   {
