@@ -258,13 +258,17 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
               1000.0 * (cpu - last_cpu) / std::max<int64_t>(1, pushed - last_frames)},
              {"rss_mib", StatusMiB("VmRSS")},
              {"peak_rss_mib", StatusMiB("VmHWM")},
-             {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames}});
+             {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames},
+             {"held_images", mosaicker.summary().fusion.held_images},
+             {"held_image_mib",
+              static_cast<double>(mosaicker.summary().fusion.held_image_bytes) / 1048576.0}});
         const auto& c = checkpoints.back();
         std::cerr << "flight_bench: " << pushed << "/" << config.frames << " frames, "
                   << c["segment_frames_per_s"].get<double>() << " frames/s, "
                   << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame, RSS "
                   << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
-                  << ")" << std::endl;
+                  << "), images held " << c["held_images"].get<int64_t>() << " ("
+                  << c["held_image_mib"].get<double>() << " MiB)" << std::endl;
         last_wall = wall;
         last_cpu = cpu;
         last_frames = static_cast<int>(pushed);
@@ -285,8 +289,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     run.origin_lat_deg = s.origin_lat_deg;
     run.origin_lon_deg = s.origin_lon_deg;
     run.gsd_m = s.gsd_m;
+    int64_t oldest_neighbour = 0;  // Frames between a frame and its oldest neighbour.
     for (const irmosaic::FramePlacement& p : mosaicker.Placements()) {
       run.frames.push_back({static_cast<int>(p.index), p.time_s, p.mosaic_from_image});
+      for (int64_t n : p.neighbours) oldest_neighbour = std::max(oldest_neighbour, p.index - n);
     }
     const irmosaic::PlacementScore score =
         irmosaic::Evaluator(truth).ScorePlacements(run, "flight_bench");
@@ -323,6 +329,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
             {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
             {"rerendered_frames", s.fusion.rerendered_frames},
+            {"oldest_neighbour_frames", oldest_neighbour},
+            {"held_images", s.fusion.held_images},
+            {"held_image_mib", static_cast<double>(s.fusion.held_image_bytes) / 1048576.0},
             {"rss_start_mib", rss_start},
             {"placement_mean_px", score.rmse_px.mean},
             {"placement_p95_px", score.rmse_px.p95},
@@ -664,7 +673,10 @@ int main(int argc, char** argv) {
               << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
               << " px (RMS, mean over solves)\nplacement vs truth mean "
               << Fixed(f["placement_mean_px"], 3) << " px, p95 " << Fixed(f["placement_p95_px"], 3)
-              << ", max " << Fixed(f["placement_max_px"], 3) << "\n";
+              << ", max " << Fixed(f["placement_max_px"], 3) << "\nfusion: images held at the end "
+              << f["held_images"].get<int64_t>() << " (" << Fixed(f["held_image_mib"], 0)
+              << " MiB), oldest neighbour registered to " << f["oldest_neighbour_frames"]
+              << " frames back\n";
   }
 
   if (paced_frames > 0) {

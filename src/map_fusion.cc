@@ -79,6 +79,7 @@ bool FusionOptions::IsValid(std::string* error) const {
     return false;
   };
   if (window_frames < 2) return fail("window_frames must be at least 2");
+  if (candidate_frames < 0) return fail("candidate_frames must be >= 0 (0: window_frames)");
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
   if (max_neighbours < 1) return fail("max_neighbours must be at least 1");
   if (!(min_overlap_fraction > 0.0 && min_overlap_fraction < 1.0))
@@ -145,11 +146,14 @@ class MapFusion::Impl {
     placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
     placement.mosaic_from_image = frame->data.pos_mosaic_from_image;
 
-    // Neighbours by POS footprint overlap, the most recent frame first.
+    // Neighbours by POS footprint overlap among the newest candidate_frames, the most recent
+    // frame first (the older held frames have no image; the count alone decides, so a resumed
+    // run sees the same candidates).
     std::vector<std::shared_ptr<Held>> candidates;
     {
       std::lock_guard<std::mutex> lock(mu_);
-      candidates.assign(window_.rbegin(), window_.rend());
+      const size_t count = std::min(CandidateCount(), window_.size());
+      candidates.assign(window_.rbegin(), window_.rbegin() + static_cast<std::ptrdiff_t>(count));
     }
     std::vector<std::pair<double, std::shared_ptr<Held>>> scored;
     const double own_area = cv::contourArea(frame->pos_footprint);
@@ -265,8 +269,9 @@ class MapFusion::Impl {
              pairs_.front().templ->data.index < oldest) {
         pairs_.pop_front();
       }
+      ReleaseImagesLocked();
     }
-    Render(*frame, placement, &foreground_ortho_);
+    Render(frame->data.image, frame->data.image_clip, placement, &foreground_ortho_);
     if (sink_) sink_->FramePlaced(placement);
     if (options_.optimize) cv_.notify_one();
     return placement;
@@ -351,6 +356,12 @@ class MapFusion::Impl {
     s.pairs_tried = pairs_tried_;
     s.pairs_ok = pairs_ok_;
     s.optimizer_lag_frames = frames_since_solve_;
+    s.held_frames = static_cast<int64_t>(window_.size());
+    for (const auto& f : window_) {
+      if (f->data.image.empty()) continue;
+      ++s.held_images;
+      s.held_image_bytes += static_cast<int64_t>(f->data.image.total() * f->data.image.elemSize());
+    }
     return s;
   }
 
@@ -371,6 +382,26 @@ class MapFusion::Impl {
     // solve to the next. Written by the solver only (one at a time), read by it.
     std::shared_ptr<double> weight = std::make_shared<double>(1.0);
   };
+
+  size_t CandidateCount() const {
+    return static_cast<size_t>(options_.candidate_frames > 0 ? options_.candidate_frames
+                                                             : options_.window_frames);
+  }
+
+  // Frees the images of held frames that are no registration candidate any more and that no
+  // solve can re-render: older than the newest candidate_frames and window_frames, and
+  // refined (a solve reaches back past its window only to unrefined frames; a running one
+  // holds its own references). They stay held as frozen ends of pairs. Not during a replay:
+  // its interrupted solve may still need them.
+  void ReleaseImagesLocked() {
+    const size_t count = std::max(CandidateCount(), static_cast<size_t>(options_.window_frames));
+    for (size_t k = 0; k + count < window_.size(); ++k) {
+      Held& f = *window_[k];
+      if (f.data.image.empty()) continue;
+      if (options_.optimize && placements_[f.slot].optimized_times == 0) continue;
+      f.data.image.release();
+    }
+  }
 
   // A registered pair as the optimizer keeps it: at most max_ties_per_pair ties, with the
   // patch means at both ends for the radiometric ties (NaN where a patch leaves the image).
@@ -458,6 +489,7 @@ class MapFusion::Impl {
     {
       std::lock_guard<std::mutex> lock(mu_);
       frames_since_solve_ = resume_.frames_since_solve;
+      ReleaseImagesLocked();
     }
     if (options_.optimize) cv_.notify_one();
   }
@@ -508,10 +540,13 @@ class MapFusion::Impl {
     }
   }
 
-  void Render(const Held& frame, const FramePlacement& placement, Orthorectifier* ortho) {
+  // Paints a frame's `image` (its own reference: the producer may release the held one
+  // meanwhile) with the part `image_clip` at `placement`.
+  void Render(const cv::Mat& image, const std::vector<Eigen::Vector2d>& image_clip,
+              const FramePlacement& placement, Orthorectifier* ortho) {
     if (!sink_ || !options_.render) return;
     OrthoImage out;
-    ortho->Run(frame.data.image, placement.mosaic_from_image, &out, frame.data.image_clip);
+    ortho->Run(image, placement.mosaic_from_image, &out, image_clip);
     cv::Mat compensated;
     out.image.convertTo(compensated, out.image.type(), placement.gain, placement.offset);
     cv::Mat weight;
@@ -627,6 +662,7 @@ class MapFusion::Impl {
     const auto start = Clock::now();
     const double start_cpu_ms = ThreadCpuMs();
     std::vector<std::shared_ptr<Held>> frames;
+    std::map<size_t, cv::Mat> images;  // slot -> the frame's image, for the re-renders
     std::vector<Pair> pairs;
     std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
     std::map<size_t, Eigen::Matrix<double, 10, 10>> prior_info;
@@ -663,6 +699,7 @@ class MapFusion::Impl {
       for (const auto& f : frames) {
         current[f->slot] = placements_[f->slot];
         prior_info[f->slot] = f->prior_sqrt_information;
+        images[f->slot] = f->data.image;
       }
       frames_since_solve_ = 0;
     }
@@ -889,7 +926,7 @@ class MapFusion::Impl {
     Orthorectifier* ortho =
         final_solve || last_slot != SIZE_MAX ? &foreground_ortho_ : &background_ortho_;
     for (const auto& [frame, placement] : moved) {
-      Render(*frame, placement, ortho);
+      Render(images[frame->slot], frame->data.image_clip, placement, ortho);
       if (sink_) sink_->FramePlaced(placement);
     }
   }

@@ -445,8 +445,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     tile.writing = true;
     --dirty_count;
   }
-  // Overviews and frames.gpkg at most every overview_interval_s, and always when closing.
+  // Overviews and frames.gpkg at most every overview_interval_s, and always when closing, or
+  // sooner when more than max_cached_tiles level-0 tiles would wait for them: the images they
+  // wait with stay in memory (a burst of re-renders, e.g. the final solve's, touches hundreds).
+  size_t owed = overview_owed.size();
+  for (const auto& [index, image] : level0) owed += overview_owed.count(index) ? 0 : 1;
   const bool secondary = closing || options.overview_interval_s <= 0.0 ||
+                         owed > options.max_cached_tiles ||
                          std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
                              options.overview_interval_s;
   std::vector<FrameRecord> frames_to_write;
@@ -570,6 +575,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   lock.lock();
   stats.writer_busy_ms += busy_ms;
   stats.writer_cpu_ms += cpu_ms;
+  stats.overview_owed_tiles = overview_owed.size();
   stats.index_ms_total = index_ms;
   stats.index_bytes_total = index_bytes;
   stats.tiles_written += tiles_written;

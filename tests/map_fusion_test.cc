@@ -5,6 +5,7 @@
 #include <ceres/autodiff_cost_function.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
@@ -331,6 +332,54 @@ TEST(MapFusionTest, AnalyticCostJacobiansMatchAutodiff) {
   EXPECT_LE(worst_jacobian, 1e-9);
 }
 
+// Frames older than the newest candidate_frames (and the window) keep no image: they are no
+// registration candidates (a revisit of their ground registers to newer frames only) but stay
+// held as frozen ends of pairs, and the images held stay bounded however long the flight.
+TEST(MapFusionTest, HeldImagesAreBoundedByTheCandidates) {
+  const Sweep s = MakeSweep(30, 6, 0.0, 0.0, 11);
+  FusionOptions options;
+  options.window_frames = 8;
+  options.optimize = false;  // No solve: which frames are refined cannot depend on timing.
+  options.render = false;
+  std::vector<std::pair<int64_t, int64_t>> calls;  // (base, template)
+  const PairRegisterFn record = [&calls](const FusionFrame& base, const FusionFrame& templ) {
+    calls.emplace_back(base.index, templ.index);
+    PairMatch m;
+    m.reason = "not registered in this test";
+    return m;
+  };
+  MapFusion fusion(options, s.camera, record, nullptr);
+  auto push = [&](int64_t index, size_t pose) {
+    FusionFrame f;
+    f.index = index;
+    f.time_s = static_cast<double>(index) * 0.04;
+    f.image = cv::Mat(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000 + index));
+    f.pos_mosaic_from_image = s.pos[pose];
+    fusion.Push(std::move(f));
+  };
+  const int64_t image_bytes = int64_t{2} * s.camera.width * s.camera.height;
+  for (int64_t i = 0; i < 30; ++i) {
+    push(i, static_cast<size_t>(i));
+    const FusionStats stats = fusion.stats();
+    ASSERT_EQ(stats.held_images, std::min<int64_t>(i + 1, 8)) << "after frame " << i;
+    ASSERT_EQ(stats.held_image_bytes, stats.held_images * image_bytes);
+    ASSERT_EQ(stats.held_frames, std::min<int64_t>(i + 1, 16)) << "after frame " << i;
+  }
+  // Frame 30 flies over frame 18's ground again: 18 is held (frozen) but 12 frames back, past
+  // the 8 candidates, so only the newer frames that overlap it are tried.
+  calls.clear();
+  push(30, 18);
+  ASSERT_FALSE(calls.empty());
+  for (const auto& [base, templ] : calls) EXPECT_GE(base, 30 - 8) << "registered to " << base;
+  // Frame 31 over frame 27's ground, 4 frames back: a candidate, the best overlap.
+  calls.clear();
+  push(31, 27);
+  EXPECT_NE(std::find(calls.begin(), calls.end(), std::pair<int64_t, int64_t>{27, 31}),
+            calls.end());
+  EXPECT_EQ(fusion.stats().held_images, 8);
+  EXPECT_EQ(fusion.stats().held_frames, 16);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;
@@ -346,6 +395,10 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.sparse_library = "NO_SUCH_LIBRARY";
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("sparse_library"), std::string::npos);
+  options = FusionOptions();
+  options.candidate_frames = -1;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("candidate_frames"), std::string::npos);
   options = FusionOptions();
   options.pair_robust_scale_px = 0.0;
   EXPECT_FALSE(options.IsValid(&error));

@@ -564,6 +564,35 @@ TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
   store->Close();
 }
 
+// Deferred overviews keep the latest image of every tile they owe: a burst of painting (the
+// final solve's re-renders) must not hold more than max_cached_tiles of them, whatever the
+// interval; the overviews then follow early.
+TEST(TileStoreTest, TilesOwedToDeferredOverviewsStayBounded) {
+  const fs::path dir = FreshDir("owed") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.max_cached_tiles = 8;
+  options.overview_interval_s = 3600.0;  // Never due by the clock during the test.
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  size_t most_owed = 0;
+  for (int i = 0; i < 60; ++i) {
+    PaintSquare(store.get(), {i * 64, 0}, 64, 100 + i);
+    if (i % 5 == 4) {
+      store->WaitPublished(store->RequestPublish());
+      most_owed = std::max(most_owed, store->stats().overview_owed_tiles);
+    }
+  }
+  EXPECT_GT(most_owed, 0u);  // Deferred at all.
+  EXPECT_LE(most_owed, options.max_cached_tiles);
+  // The early updates wrote level-1 tiles before Close.
+  EXPECT_TRUE(fs::exists(dir / "tiles/1"));
+  store->Close();
+  GdalErrorCount errors;
+  const Raster level1 = ReadThroughGdal(dir / "mosaic.vrt", 1);
+  ASSERT_FALSE(level1.data.empty()) << errors.last;
+  EXPECT_EQ(cv::countNonZero(level1.data == 100 + 59), 32 * 32);
+}
+
 TEST(TileStoreTest, BadPathsAreOutputErrorsNamingThePath) {
   const fs::path dir = FreshDir("badpath");
   std::ofstream(dir / "a_file") << "x";

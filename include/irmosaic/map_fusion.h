@@ -75,7 +75,11 @@ class IRMOSAIC_EXPORT MosaicSink {
 };
 
 struct FusionOptions {
-  int window_frames = 300;              // Sliding window of the global optimization.
+  int window_frames = 300;  // Sliding window of the global optimization.
+  // Registration candidates of a new frame: the newest this many frames (0: window_frames).
+  // Only they and the frames a solve may still re-render keep their images; older frames
+  // stay held without pixels as the frozen ends of pairs (docs/fusion.md, "Held images").
+  int candidate_frames = 0;
   int solve_every_frames = 8;           // A window solve starts after this many new frames.
   int max_neighbours = 2;               // Registrations per new frame (previous + best other).
   int max_ties_per_pair = 24;           // Tie points kept per pair for the optimizer.
@@ -130,6 +134,9 @@ struct FusionStats {
   double max_solve_cpu_ms = 0.0;     // The solving thread's CPU time (a loaded machine inflates
   double total_solve_cpu_ms = 0.0;   // wall time, not this).
   int64_t optimizer_lag_frames = 0;  // Frames pushed but not yet in a finished solve.
+  int64_t held_frames = 0;           // Frames held (placements, footprints, ends of pairs).
+  int64_t held_images = 0;           // Of those, frames that still hold their image,
+  int64_t held_image_bytes = 0;      // and the bytes of those images (summed per frame).
   // Root mean of the predicted squared placement error (5x5 grid of each frame, mosaic px)
   // over the frames of the final solve; 0 unless FusionOptions::estimate_precision.
   double predicted_rmse_px = 0.0;

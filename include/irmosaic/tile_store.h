@@ -40,13 +40,16 @@ struct TileStoreOptions {
   int compression_level = 1;  // ZSTD 1..22 / DEFLATE 1..9; low levels keep the writer fast.
   int overview_levels = -1;   // Overview levels above level 0; -1: grow with the extent.
   // Overviews and frames.gpkg are brought up to date at most this often, seconds (0: on
-  // every publish); level-0 tiles and the index are published every time, and Close()
-  // brings everything up to date. Zoomed-out views may lag by this much; the writer's work
+  // every publish), or sooner when more than max_cached_tiles level-0 tiles wait for them
+  // (their images wait in memory); level-0 tiles and the index are published every time, and
+  // Close() brings everything up to date. Zoomed-out views may lag by this much; the writer's work
   // per publish no longer includes the overview pyramid and the growing frames.gpkg.
   double overview_interval_s = 0.0;
-  size_t max_cached_tiles = 64;  // Memory bound: clean tiles beyond this leave memory.
-  bool durable = false;          // fsync each file before its rename (power-loss safety).
-  int writer_nice = 5;           // Writer thread's nice increment (0: same priority as the caller).
+  // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
+  // early when more tiles than this wait for them.
+  size_t max_cached_tiles = 64;
+  bool durable = false;  // fsync each file before its rename (power-loss safety).
+  int writer_nice = 5;   // Writer thread's nice increment (0: same priority as the caller).
   std::string layer_name = "irmosaic";  // Name of the layers in the .qlr file.
 
   // True if usable; otherwise *error says which option is wrong and why.
@@ -143,7 +146,10 @@ class IRMOSAIC_EXPORT TileStore {
     double publish_p99_ms = 0.0;    // ... 99th percentile.
     double publish_max_ms = 0.0;    // ... worst.
     size_t cached_tiles = 0;        // Level-0 tiles in memory now.
-    size_t tiles_on_disk = 0;       // Level-0 tiles in the store.
+    // Level-0 tiles whose images wait in memory for the next overview update (at most
+    // max_cached_tiles after each publish).
+    size_t overview_owed_tiles = 0;
+    size_t tiles_on_disk = 0;  // Level-0 tiles in the store.
   };
   Stats stats() const;
 
