@@ -384,9 +384,9 @@ class Mosaicker::Impl : public MosaicSink {
     if (!geometry.warning.empty()) {
       result.warning = "frame " + std::to_string(index) + ": " + geometry.warning;
     }
-    auto ortho = std::make_shared<OrthoImage>();
+    std::shared_ptr<OrthoImage> ortho;
     try {
-      ortho_.Run(image, geometry.mosaic_from_image, ortho.get(), geometry.image_clip);
+      ortho = BuildPosOrtho(frame);
     } catch (const InputError& e) {
       return skip(e.problem());
     }
@@ -750,8 +750,15 @@ class Mosaicker::Impl : public MosaicSink {
         if (it->first == frame.index) return it->second;
       }
     }
+    return BuildPosOrtho(frame);
+  }
+
+  // A frame's POS orthoimage, built the same way when it is pushed and again when registration
+  // needs it after it left the cache (until session 5 the rebuild left out the clip polygon, so
+  // a frame clipped at max_range_m registered with ground it does not show).
+  std::shared_ptr<OrthoImage> BuildPosOrtho(const FusionFrame& frame) {
     auto ortho = std::make_shared<OrthoImage>();
-    ortho_.Run(frame.image, frame.pos_mosaic_from_image, ortho.get());
+    ortho_.Run(frame.image, frame.pos_mosaic_from_image, ortho.get(), frame.image_clip);
     return ortho;
   }
 
