@@ -73,6 +73,9 @@ int RunRun(int argc, char** argv) {
   args.Option("--compression", "tile compression: ZSTD, DEFLATE, LZW or NONE", "ZSTD", "NAME");
   args.Option("--window", "frames in the global optimization window", "300", "N");
   args.Flag("--no-optimize", "real-time mapping only (no global optimization)");
+  args.Flag("--no-planned-extent",
+            "do not size the store to the flight's POS footprints ahead (the GDAL plug-in, and "
+            "QGIS through it, then show the painted extent of when they opened the store)");
   args.Option("--pos-sigma", "POS position accuracy (1 sigma), metres", "2", "M");
   args.Option("--att-sigma", "POS attitude accuracy (1 sigma), degrees", "0.3", "DEG");
   args.Option("--radius", "coarse search radius around the POS prediction, pixels", "64", "PX");
@@ -113,6 +116,7 @@ int RunRun(int argc, char** argv) {
   options.compression = args.Get("--compression");
   options.fusion.window_frames = args.GetInt("--window");
   options.fusion.optimize = !args.Has("--no-optimize");
+  options.planned_extent = !args.Has("--no-planned-extent");
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
   options.search_radius_px = args.GetDouble("--radius");

@@ -59,7 +59,47 @@ struct StoreIndex {
   double time_min_s = 0.0, time_max_s = 0.0;
   std::vector<std::set<TileIndex>> levels;         // Level 0 first; tiles present.
   int64_t row0 = 0, col0 = 0, row1 = 0, col1 = 0;  // Level-0 tile bounds (half-open).
+  // The extent served: the tile bounds grown to the planned_bounds_px of the manifest (the
+  // flight's extent foreseen from its POS) when it has them, in level-0 tiles (half-open).
+  int64_t extent_row0 = 0, extent_col0 = 0, extent_row1 = 0, extent_col1 = 0;
   int usable_levels = 1;  // Levels with an exact pixel grid (tile_size divisible by 2^l).
+};
+
+// The tile list the reads use, shared by a level-0 dataset and its overviews. A client that keeps
+// the dataset open (QGIS keeps its GDAL handle for the layer's life) sees the store grow: before
+// each read of the data band the manifest is checked (one stat) and, once it has been replaced,
+// read again (open option LIVE=NO turns this off). Only the tile list and the metadata follow;
+// the raster's size and georeferencing stay those of the open, so tiles beyond the opened extent
+// show after a reopen (the manifest's planned_bounds_px, when the writer knew the flight ahead,
+// makes the opened extent the whole flight's).
+struct LiveIndex {
+  std::string manifest_path;
+  bool live = true;
+  // The manifest as last read: inode, size, modification time (ns). The store replaces it by
+  // rename, so a new publish is a new file.
+  int64_t inode = -1, size = -1, mtime_ns = -1;
+  std::shared_ptr<const StoreIndex> index;
+  int64_t refreshes = 0;  // Newer generations taken since the open.
+
+  // Stats the manifest; true if it is another file than the one last read (and remembers it).
+  bool Replaced() {
+    VSIStatBufL stat;
+    if (VSIStatL(manifest_path.c_str(), &stat) != 0) return false;
+#ifdef __linux__
+    const int64_t ns =
+        static_cast<int64_t>(stat.st_mtim.tv_sec) * 1000000000 + stat.st_mtim.tv_nsec;
+#else
+    const int64_t ns = static_cast<int64_t>(stat.st_mtime) * 1000000000;
+#endif
+    if (static_cast<int64_t>(stat.st_ino) == inode && static_cast<int64_t>(stat.st_size) == size &&
+        ns == mtime_ns) {
+      return false;
+    }
+    inode = static_cast<int64_t>(stat.st_ino);
+    size = static_cast<int64_t>(stat.st_size);
+    mtime_ns = ns;
+    return true;
+  }
 };
 
 // Largest nesting of arrays/objects in JSON text (strings skipped), so a deeply nested document
@@ -360,6 +400,43 @@ bool ParseManifest(const char* text, size_t size, StoreIndex* index, std::string
       return false;
     }
   }
+  index->extent_row0 = index->row0;
+  index->extent_col0 = index->col0;
+  index->extent_row1 = index->row1;
+  index->extent_col1 = index->col1;
+  // The planned extent: optional, a display hint only (nothing outside it is refused).
+  if (j.contains("planned_bounds_px") && !j["planned_bounds_px"].is_null()) {
+    const nlohmann::json& b = j["planned_bounds_px"];
+    double c0 = 0, r0 = 0, c1 = 0, r1 = 0;
+    const double limit = static_cast<double>(kMaxTileIndex) * index->tile_size;
+    if (!b.is_object()) {
+      *error = "field \"planned_bounds_px\" must be an object";
+      return false;
+    }
+    if (!GetDouble(b, "col_min", -limit, limit, &c0, error) ||
+        !GetDouble(b, "row_min", -limit, limit, &r0, error) ||
+        !GetDouble(b, "col_max", -limit, limit, &c1, error) ||
+        !GetDouble(b, "row_max", -limit, limit, &r1, error)) {
+      *error = "planned_bounds_px: " + *error;
+      return false;
+    }
+    if (!(c0 < c1 && r0 < r1)) {
+      *error = "planned_bounds_px is empty (col_min >= col_max or row_min >= row_max)";
+      return false;
+    }
+    const double t = index->tile_size;
+    index->extent_col0 = std::min(index->col0, static_cast<int64_t>(std::floor(c0 / t)));
+    index->extent_row0 = std::min(index->row0, static_cast<int64_t>(std::floor(r0 / t)));
+    index->extent_col1 = std::max(index->col1, static_cast<int64_t>(std::ceil(c1 / t)));
+    index->extent_row1 = std::max(index->row1, static_cast<int64_t>(std::ceil(r1 / t)));
+    const int64_t w = (index->extent_col1 - index->extent_col0) * index->tile_size;
+    const int64_t h = (index->extent_row1 - index->extent_row0) * index->tile_size;
+    if (w > INT_MAX || h > INT_MAX) {
+      *error = "planned_bounds_px make the mosaic " + std::to_string(w) + " x " +
+               std::to_string(h) + " pixels, beyond GDAL's raster size";
+      return false;
+    }
+  }
   index->usable_levels = 1;
   while (index->usable_levels < static_cast<int>(index->levels.size()) &&
          index->tile_size % (1 << index->usable_levels) == 0) {
@@ -450,6 +527,12 @@ class IrmosaicBand final : public GDALRasterBand {
  public:
   IrmosaicBand(IrmosaicDataset* dataset, int band);
   CPLErr IReadBlock(int block_x, int block_y, void* data) override;
+  // A read of the data band first takes a newer published generation (IrmosaicDataset::Refresh).
+  // Refreshing on band 1 only keeps a render consistent: its alpha, read after the data, comes
+  // from the same tiles; read before, it may lag one generation (new pixels transparent once).
+  CPLErr IRasterIO(GDALRWFlag rw, int x, int y, int w, int h, void* data, int buf_w, int buf_h,
+                   GDALDataType buf_type, GSpacing pixel_space, GSpacing line_space,
+                   GDALRasterIOExtraArg* extra) override;
   GDALColorInterp GetColorInterpretation() override {
     return nBand == 1 ? GCI_GrayIndex : GCI_AlphaBand;
   }
@@ -461,33 +544,90 @@ class IrmosaicBand final : public GDALRasterBand {
 // the footprints layer. Without `with_raster` (a vector-only open) it has no bands.
 class IrmosaicDataset final : public GDALDataset {
  public:
-  IrmosaicDataset(std::shared_ptr<const StoreIndex> index, int level, bool with_raster = true)
-      : index_(std::move(index)) {
+  // `root` is the level-0 dataset (nullptr: this one), which the overviews share `live` with.
+  IrmosaicDataset(std::shared_ptr<LiveIndex> live, int level, bool with_raster = true,
+                  IrmosaicDataset* root = nullptr)
+      : index_(live->index), live_(std::move(live)), root_(root != nullptr ? root : this) {
     level_ = level;
     eAccess = GA_ReadOnly;
     srs_.importFromWkt(index_->crs_wkt.c_str());
     srs_.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
     if (!with_raster || index_->levels[0].empty()) return;
     const int64_t t_level = index_->tile_size >> level;  // Level-0 tile side at this level.
-    col_offset_px_ = index_->col0 * t_level;
-    row_offset_px_ = index_->row0 * t_level;
-    nRasterXSize = static_cast<int>((index_->col1 - index_->col0) * t_level);
-    nRasterYSize = static_cast<int>((index_->row1 - index_->row0) * t_level);
+    col_offset_px_ = index_->extent_col0 * t_level;
+    row_offset_px_ = index_->extent_row0 * t_level;
+    nRasterXSize = static_cast<int>((index_->extent_col1 - index_->extent_col0) * t_level);
+    nRasterYSize = static_cast<int>((index_->extent_row1 - index_->extent_row0) * t_level);
     for (int b = 1; b <= 2; ++b) SetBand(b, new IrmosaicBand(this, b));
     if (level == 0) {
       for (int l = 1; l < index_->usable_levels; ++l) {
-        overviews_.push_back(std::make_unique<IrmosaicDataset>(index_, l));
+        overviews_.push_back(std::make_unique<IrmosaicDataset>(live_, l, true, this));
       }
+    }
+  }
+
+  // Sets the metadata items from the index (at the open and after a refresh).
+  void SetIndexMetadata(const StoreIndex& index) {
+    const auto set = [&](const char* key, const std::string& value) {
+      SetMetadataItem(key, value.c_str());
+    };
+    set("IRMOSAIC_FORMAT_VERSION", std::to_string(index.format_version));
+    set("IRMOSAIC_GENERATION", std::to_string(index.generation));
+    set("IRMOSAIC_PUBLISHED_UTC", index.published_utc);
+    set("IRMOSAIC_FRAME_COUNT", std::to_string(index.frame_count));
+    set("IRMOSAIC_TIME_MIN_S", CPLSPrintf("%.6f", index.time_min_s));
+    set("IRMOSAIC_TIME_MAX_S", CPLSPrintf("%.6f", index.time_max_s));
+    set("IRMOSAIC_GSD_M", CPLSPrintf("%.9g", index.gsd_m));
+    set("IRMOSAIC_ORIGIN_LAT_DEG", CPLSPrintf("%.10f", index.origin_lat_deg));
+    set("IRMOSAIC_ORIGIN_LON_DEG", CPLSPrintf("%.10f", index.origin_lon_deg));
+    set("IRMOSAIC_TILE_SIZE", std::to_string(index.tile_size));
+    set("IRMOSAIC_LEVELS", std::to_string(index.usable_levels));
+    set("IRMOSAIC_ALPHA_MAX", CPLSPrintf("%.0f", index.alpha_max));
+    set("IRMOSAIC_FRAMES", index.root + "/frames.gpkg");
+    set("IRMOSAIC_LIVE", live_->live ? "YES" : "NO");
+  }
+
+  // Takes a newer published generation of the store, if the manifest was replaced since it was
+  // last read and the new one describes the same grid; then drops every cached block of every
+  // level. A manifest that cannot be read or parsed now (a store being deleted) is skipped:
+  // the reads go on with the tiles known. Called on the level-0 dataset.
+  void Refresh() {
+    LiveIndex& live = *live_;
+    if (!live.live || !live.Replaced()) return;
+    std::string text, error;
+    auto index = std::make_shared<StoreIndex>();
+    index->root = live.index->root;
+    bool not_a_store = false;
+    if (!ReadSmallFile(live.manifest_path, &text, &error) ||
+        !ParseManifest(text.data(), text.size(), index.get(), &error, &not_a_store,
+                       /*allow_empty=*/true)) {
+      CPLDebug("IRMOSAIC", "refresh of %s skipped: %s", live.manifest_path.c_str(), error.c_str());
+      return;
+    }
+    const StoreIndex& old = *live.index;
+    if (index->generation == old.generation) return;
+    if (index->tile_size != old.tile_size || index->type != old.type || index->gsd_m != old.gsd_m ||
+        index->crs_wkt != old.crs_wkt) {
+      CPLDebug("IRMOSAIC", "refresh of %s skipped: the store now has another grid",
+               live.manifest_path.c_str());
+      return;
+    }
+    live.index = std::move(index);
+    ++live.refreshes;
+    SetIndexMetadata(*live.index);
+    for (int b = 1; b <= nBands; ++b) GetRasterBand(b)->FlushCache(false);
+    for (auto& overview : overviews_) {
+      for (int b = 1; b <= overview->nBands; ++b) overview->GetRasterBand(b)->FlushCache(false);
     }
   }
 
   CPLErr GetGeoTransform(double* gt) override {
     if (nBands == 0) return CE_Failure;
     const double scale = std::ldexp(1.0, level_);
-    gt[0] = (static_cast<double>(index_->col0) * index_->tile_size - 0.5) * index_->gsd_m;
+    gt[0] = (static_cast<double>(index_->extent_col0) * index_->tile_size - 0.5) * index_->gsd_m;
     gt[1] = index_->gsd_m * scale;
     gt[2] = 0.0;
-    gt[3] = -(static_cast<double>(index_->row0) * index_->tile_size - 0.5) * index_->gsd_m;
+    gt[3] = -(static_cast<double>(index_->extent_row0) * index_->tile_size - 0.5) * index_->gsd_m;
     gt[4] = 0.0;
     gt[5] = -index_->gsd_m * scale;
     return CE_None;
@@ -535,7 +675,7 @@ class IrmosaicDataset final : public GDALDataset {
     const auto floor_div = [t](int64_t v) { return v >= 0 ? v / t : -((-v + t - 1) / t); };
     for (int64_t tr = floor_div(ay0); tr <= floor_div(ay1 - 1); ++tr) {
       for (int64_t tc = floor_div(ax0); tc <= floor_div(ax1 - 1); ++tc) {
-        if (index_->levels[level_].count({tr, tc}) == 0) continue;  // Missing: nodata, alpha 0.
+        if (!HasTile(tr, tc)) continue;  // Missing: nodata, alpha 0.
         const int64_t ix0 = std::max(ax0, tc * t), ix1 = std::min(ax1, tc * t + t);
         const int64_t iy0 = std::max(ay0, tr * t), iy1 = std::min(ay1, tr * t + t);
         GByte* dst = static_cast<GByte*>(out) +
@@ -551,10 +691,18 @@ class IrmosaicDataset final : public GDALDataset {
   }
 
   std::vector<std::unique_ptr<IrmosaicDataset>> overviews_;
-  std::shared_ptr<const StoreIndex> index_;
+  std::shared_ptr<const StoreIndex> index_;  // As opened: the grid, extent and georeferencing.
+  std::shared_ptr<LiveIndex> live_;          // The tiles present now.
+  IrmosaicDataset* root_ = nullptr;          // The level-0 dataset (this one at level 0).
   int level_ = 0;
 
  private:
+  bool HasTile(int64_t row, int64_t col) const {
+    const StoreIndex& now = *live_->index;
+    return level_ < static_cast<int>(now.levels.size()) &&
+           now.levels[level_].count({row, col}) != 0;
+  }
+
   CPLErr ReadTile(int band, int64_t row, int64_t col, int x, int y, int w, int h, GByte* dst,
                   int line_px) {
     const std::string relative = "tiles/" + std::to_string(level_) + "/" + std::to_string(row) +
@@ -622,6 +770,20 @@ CPLErr IrmosaicBand::IReadBlock(int block_x, int block_y, void* data) {
   return CE_Failure;
 }
 
+CPLErr IrmosaicBand::IRasterIO(GDALRWFlag rw, int x, int y, int w, int h, void* data, int buf_w,
+                               int buf_h, GDALDataType buf_type, GSpacing pixel_space,
+                               GSpacing line_space, GDALRasterIOExtraArg* extra) {
+  if (rw == GF_Read && nBand == 1) {
+    try {
+      static_cast<IrmosaicDataset*>(poDS)->root_->Refresh();
+    } catch (const std::exception& e) {
+      CPLDebug("IRMOSAIC", "refresh failed: %s", e.what());
+    }
+  }
+  return GDALRasterBand::IRasterIO(rw, x, y, w, h, data, buf_w, buf_h, buf_type, pixel_space,
+                                   line_space, extra);
+}
+
 int IrmosaicBand::GetOverviewCount() {
   return static_cast<int>(static_cast<IrmosaicDataset*>(poDS)->overviews_.size());
 }
@@ -655,6 +817,12 @@ GDALDataset* OpenStore(GDALOpenInfo* info) {
   // with no kind: all). The raster needs tiles; the footprints layer alone does not.
   const bool want_raster = (info->nOpenFlags & GDAL_OF_RASTER) != 0;
   const bool want_vector = (info->nOpenFlags & GDAL_OF_VECTOR) != 0;
+  // The manifest's identity is taken before it is read: a publish in between is then taken by
+  // the first refresh, never missed.
+  auto live = std::make_shared<LiveIndex>();
+  live->manifest_path = manifest;
+  live->live = CPLFetchBool(info->papszOpenOptions, "LIVE", true);
+  live->Replaced();
   std::string text, error;
   bool not_a_store = false;
   if (!ReadSmallFile(manifest, &text, &error) ||
@@ -666,7 +834,8 @@ GDALDataset* OpenStore(GDALOpenInfo* info) {
     }
     return nullptr;
   }
-  auto dataset = std::make_unique<IrmosaicDataset>(index, 0, want_raster);
+  live->index = index;
+  auto dataset = std::make_unique<IrmosaicDataset>(live, 0, want_raster);
   dataset->SetDescription(info->pszFilename);
   if (want_vector && !dataset->OpenFrames(&error)) {
     // A raster client loses nothing; a vector-only client has nothing to read.
@@ -677,22 +846,7 @@ GDALDataset* OpenStore(GDALOpenInfo* info) {
     }
     CPLDebug("IRMOSAIC", "no footprints layer: %s", error.c_str());
   }
-  const auto set = [&](const char* key, const std::string& value) {
-    dataset->SetMetadataItem(key, value.c_str());
-  };
-  set("IRMOSAIC_FORMAT_VERSION", std::to_string(index->format_version));
-  set("IRMOSAIC_GENERATION", std::to_string(index->generation));
-  set("IRMOSAIC_PUBLISHED_UTC", index->published_utc);
-  set("IRMOSAIC_FRAME_COUNT", std::to_string(index->frame_count));
-  set("IRMOSAIC_TIME_MIN_S", CPLSPrintf("%.6f", index->time_min_s));
-  set("IRMOSAIC_TIME_MAX_S", CPLSPrintf("%.6f", index->time_max_s));
-  set("IRMOSAIC_GSD_M", CPLSPrintf("%.9g", index->gsd_m));
-  set("IRMOSAIC_ORIGIN_LAT_DEG", CPLSPrintf("%.10f", index->origin_lat_deg));
-  set("IRMOSAIC_ORIGIN_LON_DEG", CPLSPrintf("%.10f", index->origin_lon_deg));
-  set("IRMOSAIC_TILE_SIZE", std::to_string(index->tile_size));
-  set("IRMOSAIC_LEVELS", std::to_string(index->usable_levels));
-  set("IRMOSAIC_ALPHA_MAX", CPLSPrintf("%.0f", index->alpha_max));
-  set("IRMOSAIC_FRAMES", index->root + "/frames.gpkg");
+  dataset->SetIndexMetadata(*index);
   return dataset.release();
 }
 
@@ -729,6 +883,13 @@ extern "C" void GDALRegister_IRMOSAIC() {
   driver->SetMetadataItem(GDAL_DMD_LONGNAME, "irmosaic live mosaic store (read-only)");
   driver->SetMetadataItem(GDAL_DMD_HELPTOPIC, "docs/store.md#gdal-plug-in");
   driver->SetMetadataItem(GDAL_DCAP_VIRTUALIO, "NO");
+  driver->SetMetadataItem(
+      GDAL_DMD_OPENOPTIONLIST,
+      "<OpenOptionList>"
+      "  <Option name='LIVE' type='boolean' default='YES' description='Follow the store while "
+      "it is written: reads take each newly published generation (tiles inside the opened "
+      "extent)'/>"
+      "</OpenOptionList>");
   driver->pfnIdentify = irmosaic::IdentifyNoThrow;
   driver->pfnOpen = irmosaic::Open;
   GetGDALDriverManager()->RegisterDriver(driver);

@@ -336,6 +336,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("publish_interval_s", &MosaickerOptions::publish_interval_s)
       .def_readwrite("tile_size", &MosaickerOptions::tile_size)
       .def_readwrite("compression", &MosaickerOptions::compression)
+      .def_readwrite("planned_extent", &MosaickerOptions::planned_extent)
       .def_readwrite("fusion", &MosaickerOptions::fusion)
       .def("validate", [](const MosaickerOptions& o) {
         std::string error;

@@ -302,6 +302,7 @@ class Mosaicker::Impl : public MosaicSink {
     }
     grid_ = MosaicGrid{gsd};
     georef_ = {lat0, lon0, gsd, frame_->CrsWkt()};
+    if (options_.planned_extent) planned_px_ = PlannedBoundsPx();
     PairRegistrationOptions registration;
     // The optimizer weighs each pair by its accuracy, so a pair known to 1 px is still worth
     // far more than POS (metres); the registration's own stricter default is for single pairs.
@@ -667,6 +668,44 @@ class Mosaicker::Impl : public MosaicSink {
     return false;
   }
 
+  // The mosaic pixels the flight is expected to cover: the union of the POS footprints of its
+  // records (at most one per 0.2 s of POS time, and the last), grown by three POS position
+  // sigmas, and a tile, against the POS errors the registration corrects. Empty without POS.
+  // About 20 us per record: 0.4 s for an hour's track.
+  cv::Rect PlannedBoundsPx() const {
+    const std::vector<PosRecord>& records = pos_.records();
+    GeometryOptions geometry_options;
+    geometry_options.max_range_m = options_.max_range_m;
+    double x0 = HUGE_VAL, y0 = HUGE_VAL, x1 = -HUGE_VAL, y1 = -HUGE_VAL;
+    double last_time = -HUGE_VAL;
+    for (size_t i = 0; i < records.size(); ++i) {
+      const double t = records[i].time_s;
+      if (t - last_time < 0.2 && i + 1 != records.size()) continue;
+      last_time = t;
+      const PoseLookup pose = pos_.At(t);
+      if (!pose.ok()) continue;
+      const FrameGeometry geometry =
+          ComputeFrameGeometry(camera_, pose.pose, *frame_, grid_, ground_, geometry_options);
+      if (!geometry.ok) continue;
+      for (const Eigen::Vector2d& corner : geometry.footprint_m) {
+        const Eigen::Vector2d px = grid_.PixelFromPlane(corner);
+        x0 = std::min(x0, px.x());
+        y0 = std::min(y0, px.y());
+        x1 = std::max(x1, px.x());
+        y1 = std::max(y1, px.y());
+      }
+    }
+    if (!(x0 < x1 && y0 < y1)) return {};
+    const double margin = 3.0 * options_.pos_position_sigma_m / grid_.gsd_m + options_.tile_size;
+    static constexpr double kLimit = 1 << 29;  // Beyond GDAL's raster sizes anyway.
+    const auto clamp = [](double v) { return std::clamp(v, -kLimit, kLimit); };
+    const int left = static_cast<int>(clamp(std::floor(x0 - margin)));
+    const int top = static_cast<int>(clamp(std::floor(y0 - margin)));
+    const int right = static_cast<int>(clamp(std::ceil(x1 + margin)));
+    const int bottom = static_cast<int>(clamp(std::ceil(y1 + margin)));
+    return {left, top, right - left, bottom - top};
+  }
+
   void OpenStore(PixelType type) {
     TileStoreOptions store_options;
     store_options.path = options_.store_path;
@@ -676,6 +715,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.overview_interval_s = options_.overview_interval_s;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
+    if (!planned_px_.empty()) opened->SetPlannedBoundsPx(planned_px_);
     {
       std::lock_guard<std::mutex> lock(mu_);  // Other threads read store_ through StoreView().
       store_ = std::move(opened);
@@ -852,6 +892,7 @@ class Mosaicker::Impl : public MosaicSink {
   CameraModel camera_;
   PosTrack pos_;
   FlatGround ground_;
+  cv::Rect planned_px_;  // The flight's extent foreseen from POS (PlannedBoundsPx); empty: none.
   std::unique_ptr<LocalFrame> frame_;
   MosaicGrid grid_;
   StoreGeoreference georef_;

@@ -330,6 +330,11 @@ std::string ManifestToJson(const Manifest& manifest) {
     j["bounds_px"] = nullptr;
     j["bounds_m"] = nullptr;
   }
+  if (manifest.planned_bounds_px) {
+    const auto& p = *manifest.planned_bounds_px;
+    j["planned_bounds_px"] = {
+        {"col_min", p[0]}, {"row_min", p[1]}, {"col_max", p[2]}, {"row_max", p[3]}};
+  }
   j["application"] =
       manifest.application_json.empty() ? json(nullptr) : json::parse(manifest.application_json);
   return j.dump(1) + "\n";
@@ -467,6 +472,20 @@ Manifest ReadManifest(const fs::path& path) {
     }
     if (j.contains("application") && !j["application"].is_null()) {
       m.application_json = j["application"].dump();
+    }
+    if (j.contains("planned_bounds_px") && !j["planned_bounds_px"].is_null()) {
+      const auto& p = j["planned_bounds_px"];
+      std::array<int64_t, 4> planned{};
+      const char* const keys[4] = {"col_min", "row_min", "col_max", "row_max"};
+      for (int k = 0; k < 4; ++k) {
+        planned[k] = InRange(WholeNumber(p.at(keys[k]), "planned_bounds_px", path),
+                             -(int64_t{1} << 40), int64_t{1} << 40, "planned_bounds_px", path);
+      }
+      if (planned[0] >= planned[2] || planned[1] >= planned[3]) {
+        throw InputError({path.string(), 0, 0, "planned_bounds_px"}, "the planned extent is empty",
+                         "remove planned_bounds_px or restore the manifest");
+      }
+      m.planned_bounds_px = planned;
     }
     CheckManifestRanges(m, path);
     return m;

@@ -2,10 +2,12 @@
 // Private helpers of the TileStore (src/tile_store.cc): the files of a store and how each is
 // written. Not installed; see docs/store.md for the layout and the manifest schema.
 
+#include <array>
 #include <cstdint>
 #include <filesystem>
 #include <map>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <set>
 #include <string>
 #include <utility>
@@ -79,6 +81,9 @@ struct Manifest {
   std::string application_json;               // Caller's state, verbatim JSON ("" = none).
   double display_lo = 0.0, display_hi = 0.0;  // Ramp range of the .qlr (hi <= lo: unknown).
   std::vector<std::string> overview_vrts;     // Relative paths, index l-1 for level l.
+  // The extent the writer foresees for the whole flight (level-0 pixels col_min, row_min,
+  // col_max, row_max, half-open), when it knows it (TileStore::SetPlannedBoundsPx).
+  std::optional<std::array<int64_t, 4>> planned_bounds_px;
 };
 std::string ManifestToJson(const Manifest& manifest);
 // Parses manifest.json; throws InputError naming the file if it is not a store manifest.

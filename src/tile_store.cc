@@ -210,6 +210,7 @@ struct TileStore::Impl {
   std::vector<FrameRecord> frames_changed;
   std::string application_json;
   bool application_dirty = false;
+  std::optional<std::array<int64_t, 4>> planned_bounds_px;  // SetPlannedBoundsPx.
   int64_t requested_generation = 0;
   int64_t started_generation = 0;  // Generation the writer is working on (or last worked on).
   int64_t published_generation = 0;
@@ -467,6 +468,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     }
   }
   const std::string application = application_json;
+  const auto planned = planned_bounds_px;
   application_dirty = false;
   lock.unlock();
 
@@ -555,6 +557,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     next.time_min_s = time_min;
     next.time_max_s = time_max;
     next.application_json = application;
+    next.planned_bounds_px = planned;
     WriteIndex(&next, generation);
     if (range_changed) WriteQlr(next);
     manifest = std::move(next);
@@ -729,6 +732,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     s.created_utc = s.manifest.created_utc;
     s.level0_on_disk = s.manifest.levels.empty() ? TileSet{} : s.manifest.levels[0];
     s.application_json = s.manifest.application_json;
+    s.planned_bounds_px = s.manifest.planned_bounds_px;
     s.published_generation = s.requested_generation = s.started_generation = s.manifest.generation;
     for (const FrameRecord& record : store::ReadFramesGpkg(s.root / "frames.gpkg")) {
       s.frames[record.index] = record;
@@ -887,6 +891,20 @@ void TileStore::SetApplicationState(const std::string& json_text) {
   std::lock_guard<std::mutex> lock(impl_->mutex);
   impl_->application_json = json_text;
   impl_->application_dirty = true;
+}
+
+void TileStore::SetPlannedBoundsPx(const cv::Rect& mosaic_px) {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  if (mosaic_px.empty()) {
+    impl_->application_dirty |= impl_->planned_bounds_px.has_value();
+    impl_->planned_bounds_px.reset();
+    return;
+  }
+  const std::array<int64_t, 4> planned = {mosaic_px.x, mosaic_px.y, mosaic_px.br().x,
+                                          mosaic_px.br().y};
+  if (impl_->planned_bounds_px == planned) return;
+  impl_->planned_bounds_px = planned;
+  impl_->application_dirty = true;  // The manifest changes even if no tile does.
 }
 
 std::string TileStore::application_state() const {

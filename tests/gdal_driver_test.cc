@@ -9,6 +9,7 @@
 #include <ogrsf_frmts.h>
 #include <unistd.h>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -286,6 +287,103 @@ TEST_F(GdalDriverTest, ReopenAfterAPublishShowsTheLargerExtentAndTheNewGeneratio
   EXPECT_EQ(errors.count, 0) << errors.last;
 }
 
+// Reads one sample of `band` (dataset pixel x, y) as a double; NaN on a read error.
+double Sample(GDALRasterBand* band, int x, int y) {
+  double value = 0.0;
+  if (band->RasterIO(GF_Read, x, y, 1, 1, &value, 1, 1, GDT_Float64, 0, 0, nullptr) != CE_None) {
+    return std::nan("");
+  }
+  return value;
+}
+
+GDALDatasetUniquePtr OpenWithOptions(const fs::path& path, const char* option) {
+  RegisterInProcess();
+  const char* const allowed[] = {"IRMOSAIC", nullptr};
+  const char* const options[] = {option, nullptr};
+  return GDALDatasetUniquePtr(GDALDataset::Open(path.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY,
+                                                allowed, options, nullptr));
+}
+
+// A client that keeps the dataset open (QGIS does, for the layer's life) sees tiles published
+// after its open inside its extent, at level 0 and in the overviews, even where it had read (and
+// GDAL had cached) the empty block before; with LIVE=NO it keeps the state of its open.
+TEST_F(GdalDriverTest, AnOpenDatasetShowsTilesPublishedLaterInsideItsExtent) {
+  auto live = OpenWith(dir_, "IRMOSAIC");
+  auto fixed = OpenWithOptions(dir_, "LIVE=NO");
+  ASSERT_TRUE(live && fixed);
+  ASSERT_EQ(live->GetRasterXSize(), 768);  // Tiles -1..1 of 256 pixels.
+  EXPECT_STREQ(live->GetMetadataItem("IRMOSAIC_LIVE"), "YES");
+  EXPECT_STREQ(fixed->GetMetadataItem("IRMOSAIC_LIVE"), "NO");
+  // Tile (row -1, col 1) is absent: mosaic pixel (310, -190) is dataset pixel (566, 66).
+  for (GDALDataset* ds : {live.get(), fixed.get()}) {
+    std::vector<uint16_t> block(256 * 256);  // The whole block, so GDAL caches it.
+    ASSERT_EQ(ds->GetRasterBand(1)->RasterIO(GF_Read, 512, 0, 256, 256, block.data(), 256, 256,
+                                             GDT_UInt16, 0, 0, nullptr),
+              CE_None);
+    EXPECT_EQ(Sample(ds->GetRasterBand(1), 566, 66), 0.0);
+    EXPECT_EQ(Sample(ds->GetRasterBand(2), 566, 66), 0.0);
+    EXPECT_EQ(Sample(ds->GetRasterBand(2)->GetOverview(0), 283, 33), 0.0);
+  }
+  PaintSquare(store_.get(), {300, -200}, 50, 4000);
+  store_->PutFrameRecord(Frame(2, 10.08));
+  store_->WaitPublished(store_->RequestPublish());
+  GdalErrors errors;
+  // Row 10 of the square: 4000 plus the gradient's 10.
+  EXPECT_EQ(Sample(live->GetRasterBand(1), 566, 66), 4010.0);
+  EXPECT_EQ(Sample(live->GetRasterBand(2), 566, 66), 65535.0);  // UInt16 store: alpha 65535.
+  EXPECT_GT(Sample(live->GetRasterBand(1)->GetOverview(0), 283, 33), 3900.0);
+  EXPECT_GT(Sample(live->GetRasterBand(2)->GetOverview(0), 283, 33), 0.0);
+  EXPECT_STREQ(live->GetMetadataItem("IRMOSAIC_GENERATION"), "2");
+  EXPECT_STREQ(live->GetMetadataItem("IRMOSAIC_FRAME_COUNT"), "3");
+  EXPECT_EQ(live->GetRasterXSize(), 768);  // The extent stays the one opened.
+  EXPECT_EQ(Sample(fixed->GetRasterBand(1), 566, 66), 0.0);
+  EXPECT_EQ(Sample(fixed->GetRasterBand(2), 566, 66), 0.0);
+  EXPECT_STREQ(fixed->GetMetadataItem("IRMOSAIC_GENERATION"), "1");
+  EXPECT_EQ(errors.count, 0) << errors.last;
+}
+
+// A planned extent (the flight's, foreseen from POS) is the extent served from the first
+// generation; tiles painted later inside it show through a dataset opened before them.
+TEST_F(GdalDriverTest, ThePlannedExtentIsServedAndFillsInWithoutAReopen) {
+  store_->SetPlannedBoundsPx(cv::Rect(-600, -600, 2100, 1500));  // Cols -600..1500, rows ..900.
+  store_->WaitPublished(store_->RequestPublish());
+  {
+    std::ifstream in(dir_ / "manifest.json");
+    const nlohmann::json manifest = nlohmann::json::parse(in);
+    EXPECT_EQ(manifest["planned_bounds_px"]["col_min"], -600);
+    EXPECT_EQ(manifest["planned_bounds_px"]["row_max"], 900);
+  }
+  auto ds = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(ds);
+  // Tiles -3..5 across (floor(-600/256) = -3, ceil(1500/256) = 6), -3..3 down.
+  EXPECT_EQ(ds->GetRasterXSize(), 9 * 256);
+  EXPECT_EQ(ds->GetRasterYSize(), 7 * 256);
+  double gt[6];
+  ASSERT_EQ(ds->GetGeoTransform(gt), CE_None);
+  EXPECT_DOUBLE_EQ(gt[0], (-3 * 256 - 0.5) * kGsd);
+  EXPECT_DOUBLE_EQ(gt[3], (3 * 256 + 0.5) * kGsd);
+  // Mosaic pixel (1300, 700), beyond the painted tiles: dataset pixel (1300 + 768, 700 + 768).
+  EXPECT_EQ(Sample(ds->GetRasterBand(2), 2068, 1468), 0.0);
+  PaintSquare(store_.get(), {1290, 690}, 40, 5000);
+  store_->WaitPublished(store_->RequestPublish());
+  EXPECT_EQ(Sample(ds->GetRasterBand(1), 2068, 1468), 5010.0);
+  EXPECT_EQ(Sample(ds->GetRasterBand(2), 2068, 1468), 65535.0);
+  // The plan survives a resume.
+  store_->Close();
+  store_.reset();
+  TileStoreOptions options;
+  options.path = dir_.string();
+  options.tile_size = 256;
+  options.mode = TileStoreOptions::Mode::kResume;
+  const LocalFrame frame(kLat0, kLon0);
+  store_ = TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
+  PaintSquare(store_.get(), {0, 0}, 10, 100);
+  store_->WaitPublished(store_->RequestPublish());
+  auto reopened = OpenWith(dir_, "IRMOSAIC");
+  ASSERT_TRUE(reopened);
+  EXPECT_EQ(reopened->GetRasterXSize(), 9 * 256);
+}
+
 TEST_F(GdalDriverTest, FootprintsAreAVectorLayerBesideTheRaster) {
   // Vector-only (as ogrinfo asks): the frames layer of frames.gpkg, no bands.
   auto vector = OpenKinds(dir_, GDAL_OF_VECTOR);
@@ -440,6 +538,26 @@ TEST_F(MalformedManifestTest, AbsurdSizesAndCounts) {
   Write("{\"format\": \"irmosaic-store\", \"a\": " + std::string(100000, '[') +
         std::string(100000, ']') + "}");
   EXPECT_NE(Refusal().find("nests"), std::string::npos);
+}
+
+TEST_F(MalformedManifestTest, PlannedBoundsThatAreEmptyOrHuge) {
+  const auto refused_for = [&](const nlohmann::json& planned) {
+    nlohmann::json j = Manifest();
+    j["planned_bounds_px"] = planned;
+    Write(j.dump());
+    return Refusal();
+  };
+  EXPECT_NE(refused_for({{"col_min", 10}, {"row_min", 0}, {"col_max", 10}, {"row_max", 5}})
+                .find("planned_bounds_px"),
+            std::string::npos);
+  EXPECT_NE(refused_for({{"col_min", -1e12}, {"row_min", 0}, {"col_max", 10}, {"row_max", 5}})
+                .find("planned_bounds_px: field \"col_min\""),
+            std::string::npos);
+  EXPECT_NE(refused_for({{"col_min", 0}, {"row_min", 0}, {"col_max", "far"}, {"row_max", 5}})
+                .find("planned_bounds_px: field \"col_max\""),
+            std::string::npos);
+  EXPECT_NE(refused_for("wide").find("planned_bounds_px"), std::string::npos);
+  EXPECT_EQ(refused_for(nullptr), "");  // Absent: the painted extent.
 }
 
 TEST_F(MalformedManifestTest, PathsAndLevelsOutsideTheStore) {

@@ -261,6 +261,60 @@ TEST(MosaickerApiTest, PosesPushedDirectlyPlaceFramesAsTheTrackDoes) {
   fs::remove_all(with_poses.store_path);
 }
 
+// The store's planned extent (what the GDAL plug-in serves from the first generation, so QGIS
+// shows the flight fill in without a reload) is foreseen from the POS track: it holds every
+// frame's placed footprint, and no more than the documented margin beyond them.
+TEST(MosaickerApiTest, ThePlannedExtentHoldsEveryFrameTheTrackForesees) {
+  FlightSimulator sim(Flight(6));
+  MosaickerOptions options;
+  options.store_path = TempStore("planned");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+  MosaickerOptions unplanned = options;
+  unplanned.store_path = TempStore("unplanned");
+  unplanned.planned_extent = false;
+  Mosaicker u(unplanned, sim.camera(), sim.MeasuredPos());
+  for (int i = 0; i < 6; ++i) {
+    const SimFrame f = sim.Render(i);
+    ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed());
+    ASSERT_TRUE(u.Push(i, f.time_s, f.image).placed());
+  }
+  m.Finish();
+  u.Finish();
+  const auto manifest_of = [](const std::string& store) {
+    std::ifstream in(fs::path(store) / "manifest.json");
+    return nlohmann::json::parse(in);
+  };
+  const nlohmann::json planned = manifest_of(options.store_path)["planned_bounds_px"];
+  ASSERT_TRUE(planned.is_object()) << planned;
+  EXPECT_TRUE(manifest_of(unplanned.store_path)["planned_bounds_px"].is_null());
+  // The placed footprints' bounding box, mosaic pixels.
+  const double gsd = m.georeference().gsd_m;
+  double x0 = HUGE_VAL, y0 = HUGE_VAL, x1 = -HUGE_VAL, y1 = -HUGE_VAL;
+  for (const FrameRecord& record : m.FrameRecords()) {
+    for (const Eigen::Vector2d& corner : record.footprint_m) {
+      x0 = std::min(x0, corner.x() / gsd);
+      x1 = std::max(x1, corner.x() / gsd);
+      y0 = std::min(y0, -corner.y() / gsd);
+      y1 = std::max(y1, -corner.y() / gsd);
+    }
+  }
+  ASSERT_EQ(m.FrameRecords().size(), 6u);
+  EXPECT_LE(planned["col_min"].get<double>(), x0);
+  EXPECT_LE(planned["row_min"].get<double>(), y0);
+  EXPECT_GE(planned["col_max"].get<double>(), x1);
+  EXPECT_GE(planned["row_max"].get<double>(), y1);
+  // Margin: 3 POS sigmas and a tile, plus what the POS error itself moves a footprint (2 m and
+  // 0.3 deg at this range: well under 60 px).
+  const double margin = 3.0 * options.pos_position_sigma_m / gsd + options.tile_size + 60.0;
+  EXPECT_GE(planned["col_min"].get<double>(), x0 - margin);
+  EXPECT_GE(planned["row_min"].get<double>(), y0 - margin);
+  EXPECT_LE(planned["col_max"].get<double>(), x1 + margin);
+  EXPECT_LE(planned["row_max"].get<double>(), y1 + margin);
+  fs::remove_all(options.store_path);
+  fs::remove_all(unplanned.store_path);
+}
+
 // Reads band 1 and the alpha band of a raster whole through GDAL.
 struct GdalRaster {
   std::array<double, 6> geotransform = {};

@@ -854,6 +854,18 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
       {"tile index 2^62", damaged([](nlohmann::json* j) {
          (*j)["levels"][0]["tiles"] = {{int64_t{1} << 62, 0}};
        })},
+      {"planned_bounds_px empty", damaged([](nlohmann::json* j) {
+         (*j)["planned_bounds_px"] = {
+             {"col_min", 5}, {"row_min", 0}, {"col_max", 5}, {"row_max", 9}};
+       })},
+      {"planned_bounds_px 1e300", damaged([](nlohmann::json* j) {
+         (*j)["planned_bounds_px"] = {
+             {"col_min", -1e300}, {"row_min", 0}, {"col_max", 5}, {"row_max", 9}};
+       })},
+      {"planned_bounds_px text", damaged([](nlohmann::json* j) {
+         (*j)["planned_bounds_px"] = {
+             {"col_min", "a"}, {"row_min", 0}, {"col_max", 5}, {"row_max", 9}};
+       })},
       {"a JSON string", "\"irmosaic-store\""},
       {"a JSON array", "[1, 2]"},
   };

@@ -41,6 +41,11 @@ struct MosaickerOptions {
   double overview_interval_s = 2.0;
   int tile_size = 512;               // Store tile side, pixels: a multiple of 16 in [64, 8192].
   std::string compression = "ZSTD";  // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
+  // Write the extent the POS track foresees for the whole flight into the store
+  // (TileStore::SetPlannedBoundsPx), so that QGIS, through the IRMOSAIC plug-in, shows the
+  // mosaic grow over it without reopening the layer. Off, or with poses pushed directly, the
+  // store's extent is the painted one.
+  bool planned_extent = true;
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.

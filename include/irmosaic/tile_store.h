@@ -115,6 +115,13 @@ class IRMOSAIC_EXPORT TileStore {
   // The application state of the last published (or resumed) manifest.
   std::string application_state() const;
 
+  // The extent the whole flight is expected to cover, level-0 mosaic pixels (e.g. from its POS
+  // log); written to manifest.json as planned_bounds_px with the next publish and kept by a
+  // resume. Readers that keep the store open and follow it (the IRMOSAIC GDAL plug-in, hence
+  // QGIS) open it at this extent, so tiles painted later inside it show without a reopen. An
+  // empty rectangle removes it. Only a hint: painting outside it is fine.
+  void SetPlannedBoundsPx(const cv::Rect& mosaic_px);
+
   // Non-blocking: asks the writer thread to write dirty tiles, overviews, frames.gpkg, then
   // mosaic.vrt and manifest.json; returns the generation that publish will have.
   int64_t RequestPublish();

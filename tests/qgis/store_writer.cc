@@ -3,6 +3,8 @@
 //                          STORE/../export.tif (COG, UTM);
 //   store_writer STORE 2   resumes STORE and adds a second strip (the extent grows);
 //   store_writer STORE 3   resumes STORE and paints and publishes until killed (crash test).
+//   store_writer STORE 1 planned   as stage 1, with a planned extent covering stages 1 and 2
+//                          (TileStore::SetPlannedBoundsPx), as `irmosaic run` writes from POS.
 #include <cmath>
 #include <filesystem>
 #include <iostream>
@@ -48,8 +50,9 @@ cv::Mat Feather() {
 }  // namespace
 
 int main(int argc, char** argv) {
-  if (argc != 3) {
-    std::cerr << "usage: store_writer STORE 1|2\n";
+  const bool planned = argc == 4 && std::string(argv[3]) == "planned";
+  if (argc != 3 && !planned) {
+    std::cerr << "usage: store_writer STORE 1|2|3 [planned]\n";
     return 2;
   }
   const std::string path = argv[1];
@@ -62,6 +65,8 @@ int main(int argc, char** argv) {
                               : irmosaic::TileStoreOptions::Mode::kResume;
     auto store = irmosaic::TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
     const cv::Mat weight = Feather();
+    // Stage 1 covers x -320..2080, y -256..256; stage 2 y 200..712.
+    if (planned) store->SetPlannedBoundsPx(cv::Rect(-320, -256, 2400, 968));
     if (stage == 3) {
       for (int i = 0;; ++i) {
         const cv::Point origin(-320 + (i % 12) * 160, 600 + (i / 12) * 200);

@@ -7,7 +7,10 @@ usage: GDAL_DRIVER_PATH=PLUGIN_DIR QT_QPA_PLATFORM=offscreen /usr/bin/python3 \
 STORE_WRITER (tests/qgis/store_writer.cc) stage 1 creates a store. Checks: the store folder
 loads as a valid layer through the IRMOSAIC driver, with the mosaic CRS, the extent of
 mosaic.vrt, and a non-empty render; its footprints load as a vector layer through the same
-driver, with the manifest's frame count and the mosaic CRS. Exits 0 when every check passes, 1 otherwise.
+driver, with the manifest's frame count and the mosaic CRS. Then live growth: a store written
+with a planned extent (stage 1 planned), opened after its first strip, fills in when the second
+strip is published, without reopening the layer (a LIVE=NO layer of the same store, the control,
+does not). Exits 0 when every check passes, 1 otherwise.
 """
 import json
 import os
@@ -33,11 +36,11 @@ def check(condition, what):
         failures.append(what)
 
 
-def painted_samples(layer, size=256):
+def painted_samples(layer, size=256, extent=None):
     settings = QgsMapSettings()
     settings.setLayers([layer])
     settings.setDestinationCrs(layer.crs())
-    settings.setExtent(layer.extent())
+    settings.setExtent(extent if extent is not None else layer.extent())
     settings.setOutputSize(QSize(size, size))
     settings.setBackgroundColor(BACKGROUND)
     job = QgsMapRendererSequentialJob(settings)
@@ -88,6 +91,30 @@ def main():
     check(frame_count > 0 and frames.featureCount() == frame_count,
           "footprints: %d features, manifest says %d" % (frames.featureCount(), frame_count))
     check(frames.crs().toProj().startswith(ortho), "footprints CRS is the ortho tangent plane")
+
+    # Live growth. QGIS 3.22 keeps a layer's GDAL dataset open and does not reload it on
+    # auto-refresh: a mosaic.vrt layer shows no tile added after its open. The plug-in reads the
+    # newest published tiles at every render, inside the extent it opened: the planned one here.
+    live_store = os.path.join(work, "live.irmosaic")
+    subprocess.run([writer, live_store, "1", "planned"], check=True)
+    live = QgsRasterLayer(live_store, "live", "gdal")
+    control = QgsRasterLayer(live_store + "|option:LIVE=NO", "control", "gdal")
+    check(live.isValid() and control.isValid(), "the planned store loads (live and LIVE=NO)")
+    # Planned x -320..2080, y -256..712 px in 512-pixel tiles: cols -1..4, rows -1..1, 6 x 3
+    # tiles at 0.5 m (the first strip alone spans rows -1..0).
+    extent = live.extent()
+    check(abs(extent.width() - 1536) < 1e-6 and abs(extent.height() - 768) < 1e-6,
+          "the extent is the planned one, 1536 x 768 m: %s" % extent.toString())
+    live_before = painted_samples(live, extent=extent)
+    control_before = painted_samples(control, extent=extent)
+    subprocess.run([writer, live_store, "2"], check=True)
+    live_after = painted_samples(live, extent=extent)
+    control_after = painted_samples(control, extent=extent)
+    check(live_after > live_before * 1.3,
+          "the open layer shows the second strip without a reload: %d -> %d painted samples" %
+          (live_before, live_after))
+    check(control_before == live_before and control_after == control_before,
+          "the LIVE=NO layer keeps what it opened: %d -> %d" % (control_before, control_after))
     shutil.rmtree(work, ignore_errors=True)
     print("%d failure(s)" % len(failures))
     sys.stdout.flush()
