@@ -113,11 +113,13 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
 // source per block VRT of the level.
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
                           const std::vector<std::string>& overview_paths);
-// The QGIS layer definition: mosaic.vrt with a thermal ramp and auto-refresh, and the frames.
+// The QGIS layer definition: the mosaic with a thermal ramp and auto-refresh, and the frames.
 // display_lo/hi: the ramp's initial range (e.g. the data's 2-98 % percentiles); QGIS then
-// follows what the canvas shows.
+// follows what the canvas shows. `live`: the mosaic is the store itself through the IRMOSAIC
+// GDAL plug-in (./manifest.json), which follows the store at every repaint; otherwise
+// ./mosaic.vrt, which any GDAL reads but QGIS 3.22 only re-reads on a reload.
 std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, double display_lo,
-                     double display_hi);
+                     double display_hi, bool live = false);
 // 2 % and 98 % percentiles of the covered samples of some tiles; false if none is covered.
 bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, double* hi);
 

@@ -64,12 +64,14 @@ bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, 
 }
 
 std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, double display_lo,
-                     double display_hi) {
+                     double display_hi, bool live) {
   // A fixed range (the store rewrites the .qlr as the data's range grows): QGIS's own
   // cumulative-cut statistics would count the uncovered zeros, which only the alpha band marks.
   const double lo = display_lo;
   const double hi = display_hi > display_lo ? display_hi : display_lo + 1.0;
-  const std::string raster_id = layer_name + "_mosaic";
+  const std::string raster_id = layer_name + (live ? "_live_mosaic" : "_mosaic");
+  const std::string raster_source = live ? "./manifest.json" : "./mosaic.vrt";
+  const std::string raster_name = layer_name + (live ? " mosaic (live)" : " mosaic");
   const std::string frames_id = layer_name + "_frames";
   const std::string srs =
       "<srs><spatialrefsys><wkt>" + Escape(crs_wkt) + "</wkt></spatialrefsys></srs>";
@@ -80,15 +82,17 @@ std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, 
     << Escape(layer_name) << " frames\" checked=\"Qt::Checked\" "
     << "source=\"./frames.gpkg|layername=frames\"/>\n"
     << "    <layer-tree-layer providerKey=\"gdal\" expanded=\"1\" id=\"" << raster_id
-    << "\" name=\"" << Escape(layer_name) << " mosaic\" checked=\"Qt::Checked\" "
-    << "source=\"./mosaic.vrt\"/>\n"
+    << "\" name=\"" << Escape(raster_name) << "\" checked=\"Qt::Checked\" "
+    << "source=\"" << raster_source << "\"/>\n"
     << "  </layer-tree-group>\n  <maplayers>\n";
-  // The mosaic: reloaded every 2 s, alpha band for coverage, thermal ramp.
-  x << "    <maplayer type=\"raster\" autoRefreshEnabled=\"1\" autoRefreshTime=\"2000\" "
+  // The mosaic: repainted every 2 s (1 s live), alpha band for coverage, thermal ramp.
+  x << "    <maplayer type=\"raster\" autoRefreshEnabled=\"1\" autoRefreshTime=\""
+    << (live ? 1000 : 2000) << "\" "
        "hasScaleBasedVisibilityFlag=\"0\" minScale=\"1e+08\" maxScale=\"0\" "
        "styleCategories=\"AllStyleCategories\">\n"
-    << "      <id>" << raster_id << "</id>\n      <datasource>./mosaic.vrt</datasource>\n"
-    << "      <layername>" << Escape(layer_name) << " mosaic</layername>\n      " << srs
+    << "      <id>" << raster_id << "</id>\n      <datasource>" << raster_source
+    << "</datasource>\n"
+    << "      <layername>" << Escape(raster_name) << "</layername>\n      " << srs
     << "\n      <provider>gdal</provider>\n"
     << "      <pipe>\n"
     << "        <rasterrenderer type=\"singlebandpseudocolor\" band=\"1\" alphaBand=\"2\" "

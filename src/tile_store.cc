@@ -267,6 +267,9 @@ struct TileStore::Impl {
     store::WriteFileAtomic(root / (options.layer_name + ".qlr"),
                            store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi),
                            options.durable);
+    store::WriteFileAtomic(root / (options.layer_name + "_live.qlr"),
+                           store::BuildQlr(options.layer_name, georef.crs_wkt, lo, hi, true),
+                           options.durable);
   }
   void CleanStaleFiles(const store::Manifest& current);
 };
@@ -762,7 +765,10 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     s.WriteIndex(&s.manifest, 0);
   }
   s.manifest.compression = options.compression;
-  if (!fs::exists(s.root / (options.layer_name + ".qlr"))) s.WriteQlr(s.manifest);
+  if (!fs::exists(s.root / (options.layer_name + ".qlr")) ||
+      !fs::exists(s.root / (options.layer_name + "_live.qlr"))) {
+    s.WriteQlr(s.manifest);
+  }
   s.writer = std::thread([&s] { s.WriterLoop(); });
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }

@@ -21,8 +21,8 @@ import tempfile
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
-from qgis.core import (QgsApplication, QgsMapRendererSequentialJob, QgsMapSettings,  # noqa: E402
-                       QgsRasterLayer, QgsVectorLayer)
+from qgis.core import (QgsApplication, QgsLayerDefinition, QgsMapRendererSequentialJob,  # noqa: E402
+                       QgsMapSettings, QgsProject, QgsRasterLayer, QgsVectorLayer)
 from qgis.PyQt.QtCore import QSize  # noqa: E402
 from qgis.PyQt.QtGui import QColor  # noqa: E402
 
@@ -105,16 +105,33 @@ def main():
     extent = live.extent()
     check(abs(extent.width() - 1536) < 1e-6 and abs(extent.height() - 768) < 1e-6,
           "the extent is the planned one, 1536 x 768 m: %s" % extent.toString())
+    # The store's live layer file: the same, with the thermal ramp and auto-refresh.
+    project = QgsProject.instance()
+    ok, message = QgsLayerDefinition.loadLayerDefinition(
+        os.path.join(live_store, "irmosaic_live.qlr"), project, project.layerTreeRoot())
+    check(ok, "irmosaic_live.qlr loads: " + str(message))
+    qlr = [l for l in project.mapLayers().values() if isinstance(l, QgsRasterLayer)]
+    qlr = qlr[0] if len(qlr) == 1 else None
+    check(qlr is not None and qlr.isValid() and "IRMOSAIC" in qlr.htmlMetadata() and
+          qlr.renderer().type() == "singlebandpseudocolor" and qlr.hasAutoRefreshEnabled(),
+          "its mosaic layer is valid, read by the plug-in, thermal ramp, auto-refresh on")
     live_before = painted_samples(live, extent=extent)
     control_before = painted_samples(control, extent=extent)
+    qlr_before = painted_samples(qlr, extent=extent) if qlr else 0
     subprocess.run([writer, live_store, "2"], check=True)
     live_after = painted_samples(live, extent=extent)
     control_after = painted_samples(control, extent=extent)
+    qlr_after = painted_samples(qlr, extent=extent) if qlr else 0
+    check(qlr_after > qlr_before * 1.3,
+          "the live .qlr layer shows the second strip without a reload: %d -> %d" %
+          (qlr_before, qlr_after))
     check(live_after > live_before * 1.3,
           "the open layer shows the second strip without a reload: %d -> %d painted samples" %
           (live_before, live_after))
     check(control_before == live_before and control_after == control_before,
           "the LIVE=NO layer keeps what it opened: %d -> %d" % (control_before, control_after))
+    del qlr
+    project.clear()
     shutil.rmtree(work, ignore_errors=True)
     print("%d failure(s)" % len(failures))
     sys.stdout.flush()
