@@ -519,7 +519,6 @@ TEST_F(MalformedManifestTest, DamagedBlockListIsRefusedNamingTheField) {
 
 // A store written before format 2 (tiles listed one by one) opens with the same raster.
 TEST_F(MalformedManifestTest, FormatOneManifestOpensWithTheSameTiles) {
-  std::vector<int> checksums;
   std::string geotransform;
   auto read = [&](const char* version) {
     auto ds = OpenWith(dir_, "IRMOSAIC");
@@ -534,8 +533,9 @@ TEST_F(MalformedManifestTest, FormatOneManifestOpensWithTheSameTiles) {
     for (int b = 1; b <= 2; ++b) {
       GDALRasterBand* band = ds->GetRasterBand(b);
       sums.push_back(Checksum(band));
-      for (int o = 0; o < band->GetOverviewCount(); ++o)
+      for (int o = 0; o < band->GetOverviewCount(); ++o) {
         sums.push_back(Checksum(band->GetOverview(o)));
+      }
     }
     return sums;
   };
