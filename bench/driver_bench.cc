@@ -16,6 +16,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <bit>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -52,8 +53,14 @@ double Median(std::vector<double> v) {
 }
 
 // What a small change costs to publish once the store is large: RequestPublish -> on disk for a
-// 16 x 16 patch in one tile (its tile, its overview parents and the index), median of 5.
+// 16 x 16 patch in one tile (its tile, its overview parents and the index), median of 5; and of
+// that, the writer's time and bytes for the index (VRTs that changed, mosaic.vrt, manifest.json),
+// mean of the 5; and the writer thread's CPU time per publish (little inflated by other load on
+// a shared machine, unlike the wall times), mean of the 5.
 double g_small_publish_ms = 0.0;
+double g_small_writer_cpu_ms = 0.0;
+double g_small_index_ms = 0.0;
+double g_small_index_bytes = 0.0;
 
 // A square store of side ceil(sqrt(tiles)) tiles, painted one tile row at a time (a publish per
 // row keeps the writer's dirty set small). Returns the seconds it took.
@@ -85,6 +92,7 @@ double BuildStore(const fs::path& dir, int tiles) {
   store->WaitPublished(store->RequestPublish());
   const double build_s = std::chrono::duration<double>(Clock::now() - start).count();
   std::vector<double> small;
+  const irmosaic::TileStore::Stats before = store->stats();
   for (int i = 0; i < 5; ++i) {
     const cv::Mat patch(16, 16, CV_16U, cv::Scalar(9000 + i)), w(16, 16, CV_32F, cv::Scalar(1.0));
     store->Paint(patch, w, {width / 2 + 32 * i, width / 2});
@@ -93,6 +101,10 @@ double BuildStore(const fs::path& dir, int tiles) {
     small.push_back(std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
   }
   g_small_publish_ms = Median(small);
+  const irmosaic::TileStore::Stats after = store->stats();
+  g_small_writer_cpu_ms = (after.writer_cpu_ms - before.writer_cpu_ms) / 5;
+  g_small_index_ms = (after.index_ms_total - before.index_ms_total) / 5;
+  g_small_index_bytes = static_cast<double>(after.index_bytes_total - before.index_bytes_total) / 5;
   store->Close();
   return build_s;
 }
@@ -141,6 +153,19 @@ double ReadWindow(GDALDataset* ds, int overview, std::vector<uint16_t>* buffer) 
   return sum;
 }
 
+// Tiles a manifest level lists: one entry each in format 1, the set bits of its blocks' bitmaps
+// (64 hex digits) in format 2.
+size_t LevelTileCount(const nlohmann::json& level) {
+  if (level.contains("tiles")) return level["tiles"].size();
+  size_t count = 0;
+  for (const auto& block : level["blocks"]) {
+    for (const char digit : block[2].get<std::string>()) {
+      count += std::popcount(static_cast<unsigned>(std::stoi(std::string(1, digit), nullptr, 16)));
+    }
+  }
+  return count;
+}
+
 struct Row {
   std::string way, what;
   Timing timing;
@@ -184,9 +209,9 @@ int main(int argc, char** argv) {
   const nlohmann::json m = nlohmann::json::parse(in);
   const uintmax_t vrt_bytes = fs::file_size(dir / "mosaic.vrt");
   const uintmax_t manifest_bytes = fs::file_size(manifest);
-  const size_t level0_tiles = m["levels"][0]["tiles"].size();
+  const size_t level0_tiles = LevelTileCount(m["levels"][0]);
   size_t all_tiles = 0;
-  for (const auto& level : m["levels"]) all_tiles += level["tiles"].size();
+  for (const auto& level : m["levels"]) all_tiles += LevelTileCount(level);
   uintmax_t bytes = 0;
   for (const auto& entry : fs::recursive_directory_iterator(dir)) {
     if (entry.is_regular_file()) bytes += entry.file_size();
@@ -224,7 +249,9 @@ int main(int argc, char** argv) {
             << "; median of " << repeats << " fresh opens, page cache warm\n";
   if (build_s > 0) {
     std::cout << "publishing a 16 x 16 patch at this size: " << std::fixed << std::setprecision(1)
-              << g_small_publish_ms << " ms (median of 5); mosaic.vrt " << vrt_bytes / 1024
+              << g_small_publish_ms << " ms (median of 5), writer CPU " << g_small_writer_cpu_ms
+              << " ms, of which the index " << g_small_index_ms << " ms, "
+              << g_small_index_bytes / 1024 << " KiB (mean); mosaic.vrt " << vrt_bytes / 1024
               << " KiB, manifest.json " << manifest_bytes / 1024 << " KiB\n";
   }
   std::cout << "\n";
@@ -254,6 +281,10 @@ int main(int argc, char** argv) {
                                                {"store_bytes", bytes},
                                                {"build_s", build_s},
                                                {"small_publish_ms", g_small_publish_ms},
+                                               {"small_publish_writer_cpu_ms",
+                                                g_small_writer_cpu_ms},
+                                               {"small_publish_index_ms", g_small_index_ms},
+                                               {"small_publish_index_bytes", g_small_index_bytes},
                                                {"mosaic_vrt_bytes", vrt_bytes},
                                                {"manifest_bytes", manifest_bytes},
                                                {"repeats", repeats},

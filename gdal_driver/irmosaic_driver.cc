@@ -6,6 +6,8 @@
 // checked against the store folder after resolving symlinks, cannot leave the store.
 #include "irmosaic_driver.h"
 
+#include <algorithm>
+#include <bit>
 #include <climits>
 #include <cmath>
 #include <cstdint>
@@ -31,13 +33,18 @@ namespace {
 
 constexpr const char* kDriverName = "IRMOSAIC";
 constexpr const char* kFormatName = "irmosaic-store";
-constexpr int kFormatVersion = 1;
+// 2 lists a level's tiles as blocks with a presence bitmap; 1 listed every tile. Both are read.
+constexpr int kFormatVersion = 2;
 // Bounds that keep a hostile manifest from costing unbounded memory or time.
 constexpr int64_t kMaxManifestBytes = 256LL << 20;  // ~10 M tile entries.
 constexpr int kMaxJsonDepth = 64;
 constexpr int kMaxLevels = 24;
 constexpr size_t kMaxTilesTotal = 8u << 20;
 constexpr int64_t kMaxTileIndex = 1 << 20;  // |row|, |col| of a level-0 tile.
+// Format 2: a block is kBlockTiles x kBlockTiles tiles (the store's VRT blocks), its bitmap 64
+// hex digits; block indices stay within [-2^16, 2^16) so that its tiles are within the above.
+constexpr int64_t kBlockTiles = 16;
+constexpr int64_t kMaxBlockIndex = kMaxTileIndex / kBlockTiles;
 constexpr int kMinTileSize = 16, kMaxTileSize = 8192;
 constexpr size_t kMaxWktBytes = 1 << 16;
 
@@ -202,6 +209,132 @@ bool ValidWkt(const std::string& wkt, std::string* error) {
   return true;
 }
 
+// A JSON integer within [lo, hi] (a huge unsigned value does not fit int64: checked first).
+bool IntegerIn(const nlohmann::json& v, int64_t lo, int64_t hi, int64_t* out) {
+  if (!v.is_number_integer()) return false;
+  if (v.is_number_unsigned() && v.get<uint64_t>() > static_cast<uint64_t>(hi)) return false;
+  *out = v.get<int64_t>();
+  return *out >= lo && *out <= hi;
+}
+
+// Whether `level` holds the list of the other format, or both: refused rather than half read.
+bool OneTileList(const nlohmann::json& level, size_t l, const char* key, std::string* error) {
+  const std::string where = "levels[" + std::to_string(l) + "]";
+  if (level.contains("tiles") && level.contains("blocks")) {
+    *error = where + " holds both \"tiles\" (format 1) and \"blocks\" (format 2)";
+    return false;
+  }
+  if (!level.contains(key)) {
+    *error = where + "." + key + " is missing (this manifest's format_version lists a level's " +
+             "tiles as \"" + key + "\")";
+    return false;
+  }
+  if (!level[key].is_array()) {
+    *error = where + "." + key + " must be an array";
+    return false;
+  }
+  return true;
+}
+
+bool CountTiles(size_t added, size_t* tiles_total, std::string* error) {
+  *tiles_total += added;
+  if (*tiles_total > kMaxTilesTotal) {
+    *error = "manifest lists more than " + std::to_string(kMaxTilesTotal) + " tiles";
+    return false;
+  }
+  return true;
+}
+
+// Format 1: "tiles": [[row, col], ...].
+bool ParseTiles(const nlohmann::json& level, size_t l, std::set<TileIndex>* out,
+                size_t* tiles_total, std::string* error) {
+  if (!OneTileList(level, l, "tiles", error)) return false;
+  const nlohmann::json& tiles = level["tiles"];
+  if (!CountTiles(tiles.size(), tiles_total, error)) return false;
+  for (const nlohmann::json& t : tiles) {
+    if (!t.is_array() || t.size() != 2 || !t[0].is_number_integer() || !t[1].is_number_integer()) {
+      *error = "levels[" + std::to_string(l) + "].tiles holds an entry that is not [row, col]";
+      return false;
+    }
+    int64_t row = 0, col = 0;
+    if (!IntegerIn(t[0], -kMaxTileIndex, kMaxTileIndex, &row) ||
+        !IntegerIn(t[1], -kMaxTileIndex, kMaxTileIndex, &col)) {
+      *error = "levels[" + std::to_string(l) + "].tiles holds an index beyond +-" +
+               std::to_string(kMaxTileIndex);
+      return false;
+    }
+    out->insert({row, col});
+  }
+  return true;
+}
+
+int HexDigitValue(char c) {
+  if (c >= '0' && c <= '9') return c - '0';
+  if (c >= 'a' && c <= 'f') return c - 'a' + 10;
+  return -1;
+}
+
+// Format 2: "blocks": [[block_row, block_col, "<64 hex digits>"], ...]; bit i of the bitmap
+// (digit i / 4, from its most significant bit) is tile (16 block_row + i / 16,
+// 16 block_col + i % 16). Each block once, each with at least one tile (docs/store.md).
+bool ParseBlocks(const nlohmann::json& level, size_t l, std::set<TileIndex>* out,
+                 size_t* tiles_total, std::string* error) {
+  if (!OneTileList(level, l, "blocks", error)) return false;
+  const nlohmann::json& blocks = level["blocks"];
+  // Every entry is checked and its tiles counted before any is held (~70 bytes of text name up
+  // to 256 tiles); then the tiles are inserted.
+  std::set<TileIndex> seen;
+  std::vector<TileIndex> first_tiles;
+  for (size_t k = 0; k < blocks.size(); ++k) {
+    const nlohmann::json& b = blocks[k];
+    const std::string where = "levels[" + std::to_string(l) + "].blocks[" + std::to_string(k) + "]";
+    if (!b.is_array() || b.size() != 3 || !b[0].is_number_integer() || !b[1].is_number_integer() ||
+        !b[2].is_string()) {
+      *error = where + " is not [block_row, block_col, \"<64 hex digits>\"]";
+      return false;
+    }
+    int64_t block_row = 0, block_col = 0;
+    if (!IntegerIn(b[0], -kMaxBlockIndex, kMaxBlockIndex - 1, &block_row) ||
+        !IntegerIn(b[1], -kMaxBlockIndex, kMaxBlockIndex - 1, &block_col)) {
+      *error = where + " has a block index beyond [-" + std::to_string(kMaxBlockIndex) + ", " +
+               std::to_string(kMaxBlockIndex) + ")";
+      return false;
+    }
+    const std::string& hex = b[2].get_ref<const std::string&>();
+    if (hex.size() != 4 * kBlockTiles ||
+        !std::all_of(hex.begin(), hex.end(), [](char c) { return HexDigitValue(c) >= 0; })) {
+      *error = where + " has a bitmap that is not 64 lowercase hex digits";
+      return false;
+    }
+    if (hex.find_first_not_of('0') == std::string::npos) {
+      *error = where + " has a bitmap of no tile (a block is listed only if it holds one)";
+      return false;
+    }
+    if (!seen.insert({block_row, block_col}).second) {
+      *error = where + " lists block [" + std::to_string(block_row) + ", " +
+               std::to_string(block_col) + "] a second time";
+      return false;
+    }
+    size_t count = 0;
+    for (const char c : hex) count += std::popcount(static_cast<unsigned>(HexDigitValue(c)));
+    if (!CountTiles(count, tiles_total, error)) return false;
+    first_tiles.push_back({block_row * kBlockTiles, block_col * kBlockTiles});
+  }
+  for (size_t k = 0; k < blocks.size(); ++k) {
+    const std::string& hex = blocks[k][2].get_ref<const std::string&>();
+    for (size_t digit = 0; digit < hex.size(); ++digit) {
+      const int value = HexDigitValue(hex[digit]);
+      for (int bit = 0; bit < 4; ++bit) {
+        if ((value & (8 >> bit)) == 0) continue;
+        const int64_t i = static_cast<int64_t>(4 * digit) + bit;
+        out->insert(
+            {first_tiles[k].first + i / kBlockTiles, first_tiles[k].second + i % kBlockTiles});
+      }
+    }
+  }
+  return true;
+}
+
 // Validates manifest text into *index (all but `root`). Returns false with *error on refusal,
 // and sets *not_a_store when the JSON is valid but is some other format (then Open stays quiet).
 // A store with no level-0 tile yet is refused unless `allow_empty` (its footprints layer alone
@@ -327,34 +460,10 @@ bool ParseManifest(const char* text, size_t size, StoreIndex* index, std::string
         return false;
       }
     }
-    const nlohmann::json* tiles = Field(level, "tiles", error);
-    if (tiles == nullptr) return false;
-    if (!tiles->is_array()) {
-      *error = "levels[" + std::to_string(l) + "].tiles must be an array";
-      return false;
-    }
-    tiles_total += tiles->size();
-    if (tiles_total > kMaxTilesTotal) {
-      *error = "manifest lists more than " + std::to_string(kMaxTilesTotal) + " tiles";
-      return false;
-    }
-    for (const nlohmann::json& t : *tiles) {
-      if (!t.is_array() || t.size() != 2 || !t[0].is_number_integer() ||
-          !t[1].is_number_integer()) {
-        *error = "levels[" + std::to_string(l) + "].tiles holds an entry that is not [row, col]";
-        return false;
-      }
-      const bool row_ok = !t[0].is_number_unsigned() || t[0].get<uint64_t>() <= kMaxTileIndex;
-      const bool col_ok = !t[1].is_number_unsigned() || t[1].get<uint64_t>() <= kMaxTileIndex;
-      const int64_t row = row_ok ? t[0].get<int64_t>() : INT64_MAX;
-      const int64_t col = col_ok ? t[1].get<int64_t>() : INT64_MAX;
-      if (std::llabs(row) > kMaxTileIndex || std::llabs(col) > kMaxTileIndex) {
-        *error = "levels[" + std::to_string(l) + "].tiles holds an index beyond +-" +
-                 std::to_string(kMaxTileIndex);
-        return false;
-      }
-      index->levels[l].insert({row, col});
-    }
+    const bool ok = index->format_version >= 2
+                        ? ParseBlocks(level, l, &index->levels[l], &tiles_total, error)
+                        : ParseTiles(level, l, &index->levels[l], &tiles_total, error);
+    if (!ok) return false;
   }
   if (index->levels[0].empty()) {
     if (!allow_empty) {

@@ -7,7 +7,10 @@
 #include <ogrsf_frmts.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <array>
 #include <atomic>
+#include <bit>
 #include <chrono>
 #include <cmath>
 #include <ctime>
@@ -269,6 +272,37 @@ TileImage HalveTile(const TileImage& tile) {
   return out;
 }
 
+namespace {
+
+// One block's tiles (docs/store.md, "manifest.json"): a 16-bit mask per tile row of the block,
+// top row first, the block's first column the most significant bit.
+using BlockRows = std::array<uint16_t, kVrtBlockTiles>;
+constexpr char kHexDigits[] = "0123456789abcdef";
+
+// The blocks holding tiles of a level, each with its rows, in block order.
+std::map<BlockIndex, BlockRows> BlockBitmaps(const TileSet& tiles) {
+  std::map<BlockIndex, BlockRows> blocks;
+  for (const TileIndex& tile : tiles) {
+    const BlockIndex block = BlockOf(tile);
+    const int64_t row = tile.first - block.first * kVrtBlockTiles;
+    const int64_t col = tile.second - block.second * kVrtBlockTiles;
+    blocks[block][static_cast<size_t>(row)] |= static_cast<uint16_t>(0x8000u >> col);
+  }
+  return blocks;
+}
+
+// 64 lowercase hex digits, four per row: the bits in tile order, first tile first.
+std::string BitmapHex(const BlockRows& rows) {
+  std::string hex;
+  hex.reserve(4 * rows.size());
+  for (const uint16_t mask : rows) {
+    for (int shift = 12; shift >= 0; shift -= 4) hex += kHexDigits[(mask >> shift) & 0xf];
+  }
+  return hex;
+}
+
+}  // namespace
+
 std::string ManifestToJson(const Manifest& manifest) {
   // Keys in the order written below, "format" first, so a reader's cheap identification (the
   // GDAL driver's Identify reads 1 KiB) sees it; nlohmann::json would sort them ("alpha_max"
@@ -276,12 +310,16 @@ std::string ManifestToJson(const Manifest& manifest) {
   using json = nlohmann::ordered_json;
   json levels = json::array();
   for (size_t level = 0; level < manifest.levels.size(); ++level) {
-    json tiles = json::array();
-    for (const TileIndex& tile : manifest.levels[level]) tiles.push_back({tile.first, tile.second});
+    // Blocks, not tiles: the manifest is rewritten at every publish, and a list of every tile
+    // (~40 bytes each) made that cost grow with the flight (docs/store.md).
+    json blocks = json::array();
+    for (const auto& [block, rows] : BlockBitmaps(manifest.levels[level])) {
+      blocks.push_back(json::array({block.first, block.second, BitmapHex(rows)}));
+    }
     levels.push_back({{"level", level},
                       {"gsd_m", manifest.georef.gsd_m * std::ldexp(1.0, static_cast<int>(level))},
                       {"path_pattern", "tiles/" + std::to_string(level) + "/{row}_{col}.tif"},
-                      {"tiles", tiles}});
+                      {"blocks", blocks}});
   }
   const TileBounds bounds = BoundsOf(manifest.levels.empty() ? TileSet{} : manifest.levels[0]);
   const bool painted = !manifest.levels.empty() && !manifest.levels[0].empty();
@@ -344,7 +382,10 @@ namespace {
 
 // A JSON number that must be whole: a float such as 1e30 would overflow a plain get<int64_t>().
 int64_t WholeNumber(const nlohmann::json& value, const char* field, const fs::path& path) {
-  if (value.is_number_integer()) return value.get<int64_t>();
+  // An unsigned above INT64_MAX would wrap to a negative number.
+  const bool fits =
+      !value.is_number_unsigned() || value.get<uint64_t>() <= static_cast<uint64_t>(INT64_MAX);
+  if (value.is_number_integer() && fits) return value.get<int64_t>();
   if (value.is_number_float()) {
     const double x = value.get<double>();
     constexpr double kLimit = 9.0e15;  // Below 2^53: every whole double here is exact.
@@ -402,6 +443,126 @@ void CheckManifestRanges(const Manifest& m, const fs::path& path) {
       }
     }
   }
+}
+
+// A manifest's tiles, all levels together, at most: the store's set costs ~50 bytes a tile, and a
+// format-2 block of ~70 bytes of (compact) text names up to 256 tiles.
+constexpr int64_t kMaxManifestTiles = int64_t{8} << 20;
+// Block indices within +-2^36 keep their tiles within CheckManifestRanges's +-2^40, so a block's
+// first pixel (block * 16 * tile_size) stays far inside int64.
+constexpr int64_t kMaxBlockIndex = (int64_t{1} << 40) / kVrtBlockTiles;
+
+[[noreturn]] void RefuseField(const std::string& field, const std::string& problem,
+                              const fs::path& path) {
+  throw InputError({path.string(), 0, 0, field}, problem,
+                   "restore the store or start a new one (--overwrite)");
+}
+
+void CountTiles(int64_t added, int64_t* total, const std::string& field, const fs::path& path) {
+  *total += added;
+  if (*total > kMaxManifestTiles) {
+    RefuseField(field,
+                "the manifest lists more than " + std::to_string(kMaxManifestTiles) + " tiles",
+                path);
+  }
+}
+
+int HexDigitValue(char c) {
+  if (c >= '0' && c <= '9') return c - '0';
+  if (c >= 'a' && c <= 'f') return c - 'a' + 10;
+  return -1;
+}
+
+// One format-2 block entry, [block_row, block_col, "<64 hex digits>"], validated: its block
+// (not in `seen` yet; added) and its number of tiles.
+BlockIndex CheckBlock(const nlohmann::json& entry, const std::string& field, const fs::path& path,
+                      std::set<BlockIndex>* seen, int64_t* tiles) {
+  if (!entry.is_array() || entry.size() != 3 || !entry[0].is_number() || !entry[1].is_number() ||
+      !entry[2].is_string()) {
+    RefuseField(
+        field,
+        "'" + entry.dump().substr(0, 100) + "' is not [block_row, block_col, \"<64 hex digits>\"]",
+        path);
+  }
+  const BlockIndex block = {WholeNumber(entry[0], field.c_str(), path),
+                            WholeNumber(entry[1], field.c_str(), path)};
+  const std::string name =
+      "block [" + std::to_string(block.first) + ", " + std::to_string(block.second) + "]";
+  const auto in_range = [](int64_t b) { return b >= -kMaxBlockIndex && b < kMaxBlockIndex; };
+  if (!in_range(block.first) || !in_range(block.second)) {
+    RefuseField(field, name + " is out of range (block indices lie in [-2^36, 2^36))", path);
+  }
+  const std::string& hex = entry[2].get_ref<const std::string&>();
+  if (hex.size() != 4 * kVrtBlockTiles ||
+      !std::all_of(hex.begin(), hex.end(), [](char c) { return HexDigitValue(c) >= 0; })) {
+    RefuseField(field, "bitmap \"" + hex.substr(0, 80) + "\" is not 64 lowercase hex digits", path);
+  }
+  *tiles = 0;
+  for (const char c : hex) *tiles += std::popcount(static_cast<unsigned>(HexDigitValue(c)));
+  if (*tiles == 0) {
+    RefuseField(field, "the bitmap lists no tile (a block is listed only if it holds one)", path);
+  }
+  if (!seen->insert(block).second) RefuseField(field, name + " is listed twice", path);
+  return block;
+}
+
+// Inserts the tiles of a checked bitmap: bit i (digit i / 4, from its most significant bit) is
+// tile (16 block_row + i / 16, 16 block_col + i % 16) (docs/store.md).
+void InsertBlockTiles(const BlockIndex& block, const std::string& hex, TileSet* tiles) {
+  for (size_t digit = 0; digit < hex.size(); ++digit) {
+    const int value = HexDigitValue(hex[digit]);
+    for (int bit = 0; bit < 4; ++bit) {
+      if ((value & (8 >> bit)) == 0) continue;
+      const int64_t i = static_cast<int64_t>(4 * digit) + bit;
+      tiles->insert({block.first * kVrtBlockTiles + i / kVrtBlockTiles,
+                     block.second * kVrtBlockTiles + i % kVrtBlockTiles});
+    }
+  }
+}
+
+// The tiles of manifest level `l`: format 1 lists them ("tiles": [[row, col], ...]), format 2
+// lists blocks with a bitmap ("blocks"); a level holding the other format's list, or both, is
+// refused rather than half read.
+TileSet ReadLevelTiles(const nlohmann::json& level, size_t l, int64_t format_version,
+                       const fs::path& path, int64_t* tiles_total) {
+  const std::string field = "levels[" + std::to_string(l) + "]";
+  if (!level.is_object()) RefuseField(field, field + " is not an object", path);
+  if (level.contains("tiles") && level.contains("blocks")) {
+    RefuseField(field, field + " holds both \"tiles\" (format 1) and \"blocks\" (format 2)", path);
+  }
+  const char* key = format_version >= 2 ? "blocks" : "tiles";
+  if (!level.contains(key)) {
+    RefuseField(field + "." + key,
+                field + "." + key + " is missing (format_version " +
+                    std::to_string(format_version) + " lists a level's tiles as \"" + key + "\")",
+                path);
+  }
+  const nlohmann::json& list = level[key];
+  if (!list.is_array())
+    RefuseField(field + "." + key, field + "." + key + " is not an array", path);
+  TileSet tiles;
+  if (format_version >= 2) {
+    // Every entry checked and counted before any tile is held: ~70 bytes of text name up to
+    // 256 tiles, so a hostile manifest is refused before it costs memory.
+    std::set<BlockIndex> seen;
+    std::vector<BlockIndex> blocks(list.size());
+    for (size_t k = 0; k < list.size(); ++k) {
+      const std::string entry = field + ".blocks[" + std::to_string(k) + "]";
+      int64_t count = 0;
+      blocks[k] = CheckBlock(list[k], entry, path, &seen, &count);
+      CountTiles(count, tiles_total, entry, path);
+    }
+    for (size_t k = 0; k < list.size(); ++k) {
+      InsertBlockTiles(blocks[k], list[k][2].get_ref<const std::string&>(), &tiles);
+    }
+    return tiles;
+  }
+  CountTiles(static_cast<int64_t>(list.size()), tiles_total, field + ".tiles", path);
+  for (const auto& tile : list) {
+    tiles.insert(
+        {WholeNumber(tile.at(0), "levels", path), WholeNumber(tile.at(1), "levels", path)});
+  }
+  return tiles;
 }
 
 }  // namespace
@@ -462,13 +623,11 @@ Manifest ReadManifest(const fs::path& path) {
       m.display_lo = j["display_range"].at(0).get<double>();
       m.display_hi = j["display_range"].at(1).get<double>();
     }
-    for (const auto& level : j.at("levels")) {
-      TileSet tiles;
-      for (const auto& tile : level.at("tiles")) {
-        tiles.insert(
-            {WholeNumber(tile.at(0), "levels", path), WholeNumber(tile.at(1), "levels", path)});
-      }
-      m.levels.push_back(std::move(tiles));
+    const nlohmann::json& levels = j.at("levels");
+    if (!levels.is_array()) RefuseField("levels", "levels is not an array", path);
+    int64_t tiles_total = 0;
+    for (size_t l = 0; l < levels.size(); ++l) {
+      m.levels.push_back(ReadLevelTiles(levels[l], l, format_version, path, &tiles_total));
     }
     if (j.contains("application") && !j["application"].is_null()) {
       m.application_json = j["application"].dump();

@@ -18,7 +18,9 @@
 namespace irmosaic::store {
 
 inline constexpr const char* kFormatName = "irmosaic-store";
-inline constexpr int kFormatVersion = 1;
+// 2: each level lists its tiles as blocks of kVrtBlockTiles^2 with a presence bitmap
+// (docs/store.md); 1 listed every tile. Readers take both.
+inline constexpr int kFormatVersion = 2;
 inline constexpr int kBlockSize = 256;  // Internal GeoTIFF tiling (or the tile size if smaller).
 
 using TileIndex = std::pair<int64_t, int64_t>;  // (row, col), signed.

@@ -16,10 +16,13 @@
 #include <functional>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <tuple>
+#include <vector>
 
 #include "irmosaic/local_frame.h"
 #include "irmosaic/tile_store.h"
 #include "irmosaic_driver.h"
+#include "manifest_tiles.h"
 
 namespace irmosaic {
 namespace {
@@ -490,7 +493,7 @@ TEST_F(MalformedManifestTest, WrongTypes) {
     Write(j.dump());
     EXPECT_NE(Refusal().find(key), std::string::npos) << key;
   }
-  nlohmann::json j = Manifest();
+  nlohmann::json j = manifest_json::AsFormat1(Manifest());
   j["levels"][0]["tiles"][0] = "0_0";
   Write(j.dump());
   EXPECT_NE(Refusal().find("[row, col]"), std::string::npos);
@@ -510,20 +513,36 @@ TEST_F(MalformedManifestTest, AbsurdSizesAndCounts) {
   EXPECT_NE(refused_for([](auto& j) { j["tile_size"] = 1 << 30; }), "");
   EXPECT_NE(refused_for([](auto& j) { j["tile_size"] = -256; }), "");
   EXPECT_NE(refused_for([](auto& j) { j["gsd_m"] = -0.5; }), "");
-  EXPECT_NE(refused_for([](auto& j) { j["format_version"] = 2; }).find("newer"), std::string::npos);
+  EXPECT_NE(refused_for([](auto& j) { j["format_version"] = 3; }).find("newer"), std::string::npos);
   EXPECT_NE(refused_for([](auto& j) {
+              j = manifest_json::AsFormat1(j);
               j["levels"][0]["tiles"].push_back({0, 1000000000000LL});
             }),
             "");
   EXPECT_NE(refused_for([](auto& j) {
+              j = manifest_json::AsFormat1(j);
               j["levels"][0]["tiles"].push_back({0, 18446744073709551615ULL});
             }),
             "");
-  // Tiles of 8192 two million tiles apart: a raster beyond GDAL's int size.
   EXPECT_NE(refused_for([](auto& j) {
+              j = manifest_json::AsFormat1(j);
+              j["levels"][0]["tiles"].push_back({INT64_MIN, 0});
+            }),
+            "");
+  // Tiles of 8192 two million tiles apart: a raster beyond GDAL's int size (both formats).
+  EXPECT_NE(refused_for([](auto& j) {
+              j = manifest_json::AsFormat1(j);
               j["tile_size"] = 8192;
               j["levels"][0]["tiles"].push_back({0, 1000000});
               j["levels"][0]["tiles"].push_back({0, -1000000});
+              j["bounds_px"] = nullptr;
+            }).find("beyond"),
+            std::string::npos);
+  EXPECT_NE(refused_for([](auto& j) {
+              j["tile_size"] = 8192;
+              const std::string one = "8" + std::string(63, '0');
+              j["levels"][0]["blocks"].push_back({0, 62500, one});  // Tile (0, 1000000).
+              j["levels"][0]["blocks"].push_back({0, -62500, one});
               j["bounds_px"] = nullptr;
             }).find("beyond"),
             std::string::npos);
@@ -558,6 +577,95 @@ TEST_F(MalformedManifestTest, PlannedBoundsThatAreEmptyOrHuge) {
             std::string::npos);
   EXPECT_NE(refused_for("wide").find("planned_bounds_px"), std::string::npos);
   EXPECT_EQ(refused_for(nullptr), "");  // Absent: the painted extent.
+}
+
+// Format 2's block lists damaged or edited: each refused with a message naming the field.
+TEST_F(MalformedManifestTest, DamagedBlockListIsRefusedNamingTheField) {
+  const std::string bits = Manifest()["levels"][0]["blocks"][0][2];
+  const std::string appended =  // The index a block pushed onto level 0's list gets.
+      "levels[0].blocks[" + std::to_string(Manifest()["levels"][0]["blocks"].size()) + "]";
+  auto block = [](nlohmann::json& j) -> nlohmann::json& { return j["levels"][0]["blocks"][0]; };
+  const std::vector<std::tuple<std::string, std::string, std::function<void(nlohmann::json&)>>>
+      cases = {
+          {"63 digits", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = bits.substr(1); }},
+          {"65 digits", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = bits + "0"; }},
+          {"upper case", "levels[0].blocks[0]",
+           [&](auto& j) { block(j)[2] = "F" + bits.substr(1); }},
+          {"not hex", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = "-" + bits.substr(1); }},
+          {"bitmap a number", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = 7; }},
+          {"no tile", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = std::string(64, '0'); }},
+          {"two values", "levels[0].blocks[0]", [&](auto& j) { block(j).erase(2); }},
+          {"index a real", "levels[0].blocks[0]", [&](auto& j) { block(j)[0] = 0.0; }},
+          {"listed twice", appended,
+           [&](auto& j) { j["levels"][0]["blocks"].push_back(block(j)); }},
+          {"block row 2^62", "levels[0].blocks[0]",
+           [&](auto& j) { block(j)[0] = int64_t{1} << 62; }},
+          {"block col 2^16", "levels[0].blocks[0]", [&](auto& j) { block(j)[1] = 1 << 16; }},
+          {"block col -2^16 - 1", "levels[0].blocks[0]",
+           [&](auto& j) { block(j)[1] = -(1 << 16) - 1; }},
+          {"block row 2^64 - 1", "levels[0].blocks[0]",
+           [&](auto& j) { block(j)[0] = 18446744073709551615ULL; }},
+          {"block row INT64_MIN", "levels[0].blocks[0]", [&](auto& j) { block(j)[0] = INT64_MIN; }},
+          {"tiles and blocks", "levels[0]",
+           [&](auto& j) {
+             j["levels"][0]["tiles"] = nlohmann::json::array({{0, 0}});
+           }},
+          {"blocks missing", "levels[0].blocks", [&](auto& j) { j["levels"][0].erase("blocks"); }},
+          {"blocks an object", "levels[0].blocks",
+           [&](auto& j) {
+             j["levels"][0]["blocks"] = {{"0", "1"}};
+           }},
+          {"format 1 holding blocks", "levels[0].tiles", [](auto& j) { j["format_version"] = 1; }},
+          {"overview level damaged", "levels[1].blocks[0]",
+           [](auto& j) { j["levels"][1]["blocks"][0][2] = "x"; }},
+      };
+  for (const auto& [name, field, edit] : cases) {
+    nlohmann::json j = Manifest();
+    edit(j);
+    Write(j.dump());
+    const std::string message = Refusal();
+    EXPECT_NE(message.find(field), std::string::npos) << name << ": " << message;
+  }
+  // More tiles than the driver takes, through blocks of 256 (the cap counts tiles, not entries).
+  nlohmann::json j = Manifest();
+  j["bounds_px"] = nullptr;
+  nlohmann::json& blocks = j["levels"][0]["blocks"];
+  for (int64_t k = 1; k <= 33000; ++k) blocks.push_back({k / 181, k % 181, std::string(64, 'f')});
+  Write(j.dump());
+  EXPECT_NE(Refusal().find("more than"), std::string::npos);
+}
+
+// A store written before format 2 (tiles listed one by one) opens with the same raster.
+TEST_F(MalformedManifestTest, FormatOneManifestOpensWithTheSameTiles) {
+  std::string geotransform;
+  auto read = [&](const char* version) {
+    auto ds = OpenWith(dir_, "IRMOSAIC");
+    if (!ds) return std::vector<int>{};
+    EXPECT_STREQ(ds->GetMetadataItem("IRMOSAIC_FORMAT_VERSION"), version);
+    double gt[6];
+    ds->GetGeoTransform(gt);
+    geotransform = std::to_string(gt[0]) + "," + std::to_string(gt[3]) + "," +
+                   std::to_string(ds->GetRasterXSize()) + "," +
+                   std::to_string(ds->GetRasterYSize());
+    std::vector<int> sums;
+    for (int b = 1; b <= 2; ++b) {
+      GDALRasterBand* band = ds->GetRasterBand(b);
+      sums.push_back(Checksum(band));
+      for (int o = 0; o < band->GetOverviewCount(); ++o) {
+        sums.push_back(Checksum(band->GetOverview(o)));
+      }
+    }
+    return sums;
+  };
+  const std::vector<int> v2 = read("2");
+  const std::string v2_geotransform = geotransform;
+  ASSERT_GE(v2.size(), 4u);  // Two bands, at least one overview each.
+  const nlohmann::json v1 = manifest_json::AsFormat1(Manifest());
+  ASSERT_EQ(manifest_json::LevelTiles(v1["levels"][0]).size(), 5u);  // The L of MakeStore.
+  Write(v1.dump(1));
+  EXPECT_EQ(Refusal(), "");
+  EXPECT_EQ(read("1"), v2);
+  EXPECT_EQ(geotransform, v2_geotransform);
 }
 
 TEST_F(MalformedManifestTest, PathsAndLevelsOutsideTheStore) {

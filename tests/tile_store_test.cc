@@ -13,7 +13,9 @@
 #include <unistd.h>
 
 #include <GeographicLib/Geodesic.hpp>
+#include <algorithm>
 #include <chrono>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <functional>
@@ -21,10 +23,12 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
+#include <set>
 #include <thread>
 
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
+#include "manifest_tiles.h"
 
 namespace irmosaic {
 namespace {
@@ -181,7 +185,7 @@ TEST(TileStoreTest, GdalReadsPaintedMarkersAtTheirGroundPositionWithExactValues)
   EXPECT_EQ(manifest["format"], "irmosaic-store");
   EXPECT_EQ(manifest["generation"], 1);
   EXPECT_EQ(manifest["data_type"], "UInt16");
-  EXPECT_EQ(manifest["levels"][0]["tiles"].size(), 7u);  // 2222 straddles four tiles.
+  EXPECT_EQ(manifest_json::LevelTiles(manifest["levels"][0]).size(), 7u);  // 2222 straddles four.
   store->Close();
 }
 
@@ -239,11 +243,8 @@ TEST(TileStoreTest, IndexWrittenPerPublishIsBoundedByTheChangeNotTheStore) {
   std::ifstream in(dir / "manifest.json");
   const std::string manifest((std::istreambuf_iterator<char>(in)),
                              std::istreambuf_iterator<char>());
-  size_t tiles_all_levels = 0;
-  const nlohmann::json parsed = nlohmann::json::parse(manifest);
-  for (const auto& level : parsed["levels"]) {
-    tiles_all_levels += level["tiles"].size();
-  }
+  const size_t tiles_all_levels =
+      manifest_json::TileCountAllLevels(nlohmann::json::parse(manifest));
   // What one source costs in a VRT (a full block VRT lists 256 tiles in two bands).
   const int64_t block_bytes =
       static_cast<int64_t>(fs::file_size(dir / "tiles/0" / "block_r0_c0.vrt"));
@@ -842,16 +843,18 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
       {"tile_size -256", damaged([](nlohmann::json* j) { (*j)["tile_size"] = -256; })},
       {"tile_size 1e30", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 1e30; })},
       {"tile_size 100", damaged([](nlohmann::json* j) { (*j)["tile_size"] = 100; })},
-      {"format_version 2 (a newer program)",
-       damaged([](nlohmann::json* j) { (*j)["format_version"] = 2; })},
+      {"format_version 3 (a newer program)",
+       damaged([](nlohmann::json* j) { (*j)["format_version"] = 3; })},
       {"gsd_m 0", damaged([](nlohmann::json* j) { (*j)["gsd_m"] = 0.0; })},
       {"generation text", damaged([](nlohmann::json* j) { (*j)["generation"] = "x"; })},
       {"format number", damaged([](nlohmann::json* j) { (*j)["format"] = 5; })},
       {"format_version 1e300", damaged([](nlohmann::json* j) { (*j)["format_version"] = 1e300; })},
-      {"tile index 1e300", damaged([](nlohmann::json* j) {
+      {"format 1, tile index 1e300", damaged([](nlohmann::json* j) {
+         *j = manifest_json::AsFormat1(*j);
          (*j)["levels"][0]["tiles"] = {{1e300, 0}};
        })},
-      {"tile index 2^62", damaged([](nlohmann::json* j) {
+      {"format 1, tile index 2^62", damaged([](nlohmann::json* j) {
+         *j = manifest_json::AsFormat1(*j);
          (*j)["levels"][0]["tiles"] = {{int64_t{1} << 62, 0}};
        })},
       {"planned_bounds_px empty", damaged([](nlohmann::json* j) {
@@ -865,6 +868,10 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
       {"planned_bounds_px text", damaged([](nlohmann::json* j) {
          (*j)["planned_bounds_px"] = {
              {"col_min", "a"}, {"row_min", 0}, {"col_max", 5}, {"row_max", 9}};
+       })},
+      {"format 1, tile index 2^64 - 1", damaged([](nlohmann::json* j) {
+         *j = manifest_json::AsFormat1(*j);
+         (*j)["levels"][0]["tiles"] = {{18446744073709551615ULL, 0}};
        })},
       {"a JSON string", "\"irmosaic-store\""},
       {"a JSON array", "[1, 2]"},
@@ -900,6 +907,222 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
 
 namespace irmosaic {
 namespace {
+
+nlohmann::json ReadJson(const fs::path& path) {
+  std::ifstream in(path);
+  return nlohmann::json::parse(in);
+}
+
+// Tile (row, col) of each tiles/<level>/<row>_<col>.tif, and the number of block VRTs there.
+std::set<manifest_json::ManifestTile> TilesOnDisk(const fs::path& level_dir, size_t* blocks) {
+  std::set<manifest_json::ManifestTile> tiles;
+  for (const auto& entry : fs::directory_iterator(level_dir)) {
+    const std::string name = entry.path().filename().string();
+    if (name.rfind("block_r", 0) == 0) ++*blocks;
+    long long row = 0, col = 0;
+    char tail[8] = {};
+    if (std::sscanf(name.c_str(), "%lld_%lld.%3s", &row, &col, tail) == 3 &&
+        std::string(tail) == "tif") {
+      tiles.insert({row, col});
+    }
+  }
+  return tiles;
+}
+
+// manifest.json is rewritten at every publish: in format 1 it listed every tile (~40 bytes
+// each, ~4 MB for an hour's flight), so each publish cost more as the flight went on. Format 2
+// lists blocks of 16 x 16 tiles with a bitmap: about 100 bytes per block holding tiles.
+TEST(TileStoreTest, ManifestSizeFollowsTheBlocksNotTheTiles) {
+  const fs::path dir = FreshDir("manifest_blocks") / "s.irmosaic";
+  constexpr int kTile = 64;
+  auto store = TileStore::Open(Options(dir, kTile), Georef());
+  // 64 x 40 = 2560 level-0 tiles (10 blocks), in strips with publishes between, as a flight.
+  const cv::Size strip(64 * kTile, 8 * kTile);
+  for (int row = 0; row < 40; row += 8) {
+    store->Paint(cv::Mat(strip, CV_16U, cv::Scalar(1000 + row)),
+                 cv::Mat(strip, CV_32F, cv::Scalar(1.0f)), {0, row * kTile});
+    store->RequestPublish();
+  }
+  store->Close();  // Every level published.
+
+  std::ifstream in(dir / "manifest.json");
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  nlohmann::ordered_json manifest = nlohmann::ordered_json::parse(text);
+  EXPECT_EQ(manifest["format_version"], 2);
+  // It lists exactly the tiles on disk, level by level, and as many blocks as the VRT index has.
+  size_t blocks = 0, tiles = 0;
+  for (const auto& level : manifest["levels"]) {
+    const std::string name = std::to_string(level["level"].get<int>());
+    size_t level_blocks = 0;
+    const auto on_disk = TilesOnDisk(dir / "tiles" / name, &level_blocks);
+    EXPECT_EQ(manifest_json::LevelTiles(level), on_disk) << "level " << name;
+    EXPECT_EQ(level["blocks"].size(), level_blocks) << "level " << name;
+    blocks += level_blocks;
+    tiles += on_disk.size();
+  }
+  EXPECT_GE(tiles, 2560u);
+  // Everything but the lists, as written, plus 128 bytes per block: 64 hex digits, two indices
+  // (at most 12 characters each) and the layout (one value a line, ~35 bytes). A list of tiles
+  // would need ~25-40 bytes per tile: up to 256 of them per block.
+  for (auto& level : manifest["levels"]) {
+    level.erase("blocks");
+    level.erase("tiles");
+  }
+  const size_t without_lists = manifest.dump(1).size() + 1;
+  std::printf("manifest.json: %zu bytes for %zu tiles in %zu blocks (%zu without the lists)\n",
+              text.size(), tiles, blocks, without_lists);
+  EXPECT_LE(text.size(), without_lists + 128 * blocks);
+}
+
+// The bit order docs/store.md gives, on a store: tile (1, 2) is digit 4 (row 1) with value 2
+// (column 2 of 0-3 from the most significant bit), tile (-1, -1) the last bit of block (-1, -1).
+TEST(TileStoreTest, ManifestBitmapFollowsTheDocumentedBitOrder) {
+  const fs::path dir = FreshDir("manifest_bits") / "s.irmosaic";
+  auto store = TileStore::Open(Options(dir), Georef());
+  PaintSquare(store.get(), {2 * 256 + 10, 1 * 256 + 10}, 8, 100);  // Tile (1, 2).
+  PaintSquare(store.get(), {-10, -10}, 8, 200);                    // Tile (-1, -1).
+  store->Close();
+  const nlohmann::json blocks = ReadJson(dir / "manifest.json")["levels"][0]["blocks"];
+  const nlohmann::json expected = {{-1, -1, std::string(63, '0') + "1"},
+                                   {0, 0, "00002000" + std::string(56, '0')}};
+  EXPECT_EQ(blocks, expected);
+}
+
+// A store written before format 2 (tiles listed one by one) still opens and resumes, with the
+// same tiles, and its next publish writes format 2.
+TEST(TileStoreTest, FormatOneManifestStillOpensAndResumesWithTheSameTiles) {
+  const fs::path dir = FreshDir("manifest_v1") / "s.irmosaic";
+  {
+    auto store = TileStore::Open(Options(dir), Georef());
+    PaintSquare(store.get(), {-300, -40}, 700, 1500);  // 4 x 4 tiles around four blocks' corner.
+    PaintSquare(store.get(), {5000, 300}, 20, 1600);   // Tile (1, 19): block (0, 1).
+    store->Close();
+  }
+  const nlohmann::json written = ReadJson(dir / "manifest.json");
+  const nlohmann::json v1 = manifest_json::AsFormat1(written);
+  ASSERT_GE(v1["levels"].size(), 2u);
+  std::ofstream(dir / "manifest.json", std::ios::trunc) << v1.dump(1) << "\n";
+  const cv::Rect window(-300, -300, 5400, 1100);
+  cv::Mat image_v1, coverage_v1;
+  TileStore::OpenReadOnly(dir.string())->ReadWindow(window, &image_v1, &coverage_v1);
+  EXPECT_EQ(cv::countNonZero(image_v1 == 1500), 700 * 700);
+  EXPECT_EQ(cv::countNonZero(image_v1 == 1600), 20 * 20);
+
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  {
+    auto store = TileStore::Open(resume, Georef());
+    EXPECT_EQ(store->published_generation(), written["generation"].get<int64_t>());
+    cv::Mat image, coverage;
+    store->ReadWindow(window, &image, &coverage);
+    EXPECT_EQ(cv::countNonZero(image != image_v1), 0);
+    PaintSquare(store.get(), {-6000, 0}, 20, 1700);  // Tile (0, -24): a new block (0, -2).
+    store->Close();
+  }
+  const nlohmann::json after = ReadJson(dir / "manifest.json");
+  EXPECT_EQ(after["format_version"], 2);
+  std::set<manifest_json::ManifestTile> level0 = manifest_json::LevelTiles(v1["levels"][0]);
+  level0.insert({0, -24});
+  EXPECT_EQ(manifest_json::LevelTiles(after["levels"][0]), level0);
+  for (size_t l = 1; l < v1["levels"].size(); ++l) {  // Overview tiles kept (and one added).
+    const auto before = manifest_json::LevelTiles(v1["levels"][l]);
+    const auto now = manifest_json::LevelTiles(after["levels"][l]);
+    EXPECT_TRUE(std::includes(now.begin(), now.end(), before.begin(), before.end())) << l;
+  }
+  const Raster vrt = ReadThroughGdal(dir / "mosaic.vrt");
+  EXPECT_EQ(cv::countNonZero(vrt.data == 1500), 700 * 700);
+  EXPECT_EQ(cv::countNonZero(vrt.data == 1700), 20 * 20);
+}
+
+// Format 2's lists damaged or edited: each refused naming manifest.json and the field, by a
+// read-only open and by --resume alike, never read in part.
+TEST(TileStoreTest, DamagedBlockListIsRefusedNamingTheField) {
+  const fs::path dir = FreshDir("manifest_bad_blocks") / "s.irmosaic";
+  {
+    auto store = TileStore::Open(Options(dir), Georef());
+    PaintSquare(store.get(), {0, 0}, 600, 1000);
+    store->Close();
+  }
+  const nlohmann::json good = ReadJson(dir / "manifest.json");
+  ASSERT_EQ(good["levels"][0]["blocks"].size(), 1u);
+  const std::string bits = good["levels"][0]["blocks"][0][2];
+  struct Case {
+    std::string name, field;
+    std::function<void(nlohmann::json&)> edit;
+  };
+  auto block = [](nlohmann::json& j) -> nlohmann::json& { return j["levels"][0]["blocks"][0]; };
+  const std::vector<Case> cases = {
+      {"63 digits", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = bits.substr(1); }},
+      {"65 digits", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = bits + "0"; }},
+      {"upper case", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = "F" + bits.substr(1); }},
+      {"not hex", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = "g" + bits.substr(1); }},
+      {"bitmap a number", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = 7; }},
+      {"no tile", "levels[0].blocks[0]", [&](auto& j) { block(j)[2] = std::string(64, '0'); }},
+      {"two values", "levels[0].blocks[0]", [&](auto& j) { block(j).erase(2); }},
+      {"an object", "levels[0].blocks[0]",
+       [&](auto& j) {
+         block(j) = nlohmann::json::object({{"row", 0}});
+       }},
+      {"listed twice", "levels[0].blocks[1]",
+       [&](auto& j) { j["levels"][0]["blocks"].push_back(block(j)); }},
+      {"block row 2^62 (x16 x tile size overflows)", "levels[0].blocks[0]",
+       [&](auto& j) { block(j)[0] = int64_t{1} << 62; }},
+      {"block col 2^36", "levels[0].blocks[0]", [&](auto& j) { block(j)[1] = int64_t{1} << 36; }},
+      {"block col -2^36 - 1", "levels[0].blocks[0]",
+       [&](auto& j) { block(j)[1] = -(int64_t{1} << 36) - 1; }},
+      {"block row 2^64 - 1", "levels[0].blocks[0]",
+       [&](auto& j) { block(j)[0] = 18446744073709551615ULL; }},
+      {"block row 1e300", "levels[0].blocks[0]", [&](auto& j) { block(j)[0] = 1e300; }},
+      {"block row 0.5", "levels[0].blocks[0]", [&](auto& j) { block(j)[0] = 0.5; }},
+      {"tiles and blocks", "levels[0]",
+       [&](auto& j) {
+         j["levels"][0]["tiles"] = nlohmann::json::array({{0, 0}});
+       }},
+      {"blocks missing", "levels[0].blocks", [&](auto& j) { j["levels"][0].erase("blocks"); }},
+      {"blocks an object", "levels[0].blocks",
+       [&](auto& j) {
+         j["levels"][0]["blocks"] = {{"0", "1"}};
+       }},
+      {"format 1 holding blocks", "levels[0].tiles", [&](auto& j) { j["format_version"] = 1; }},
+      {"a level not an object", "levels[1]", [&](auto& j) { j["levels"][1] = 5; }},
+      {"format 3", "format_version", [&](auto& j) { j["format_version"] = 3; }},
+  };
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  for (const Case& c : cases) {
+    nlohmann::json j = good;
+    c.edit(j);
+    std::ofstream(dir / "manifest.json", std::ios::trunc) << j.dump(1);
+    const std::string where = "(field '" + c.field + "')";
+    for (const bool read_only : {true, false}) {
+      try {
+        const auto store =
+            read_only ? TileStore::OpenReadOnly(dir.string()) : TileStore::Open(resume, Georef());
+        ADD_FAILURE() << c.name << ": accepted";
+      } catch (const InputError& e) {
+        const std::string message = e.what();
+        EXPECT_NE(message.find("manifest.json"), std::string::npos) << message;
+        EXPECT_NE(message.find(where), std::string::npos) << c.name << ": " << message;
+      }
+    }
+  }
+  // More tiles than a reader holds, through full blocks: refused from the bitmaps' count,
+  // before any tile is held (the cap counts tiles, not entries).
+  nlohmann::json many = good;
+  for (int64_t k = 1; k <= 33000; ++k) {
+    many["levels"][0]["blocks"].push_back({k / 181, k % 181, std::string(64, 'f')});
+  }
+  std::ofstream(dir / "manifest.json", std::ios::trunc) << many.dump();
+  try {
+    const auto store = TileStore::OpenReadOnly(dir.string());
+    ADD_FAILURE() << "33,000 full blocks accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("more than 8388608 tiles"), std::string::npos) << e.what();
+  }
+  std::ofstream(dir / "manifest.json", std::ios::trunc) << good.dump(1);
+  EXPECT_EQ(TileStore::OpenReadOnly(dir.string())->published_generation(),
+            good["generation"].get<int64_t>());
+}
 
 // Found by the kill -9 campaign (scripts/faults.sh): a run killed before its first publish
 // left a folder with no manifest that neither --resume, --overwrite nor a new run would take.
