@@ -174,7 +174,9 @@ int RunRun(int argc, char** argv) {
             << "run: " << s.fusion.solves << " optimizer solves, " << s.generations_published
             << " generations published, publish latency p50 " << s.publish_latency_p50_s
             << " s p99 " << s.publish_latency_p99_s << " s\n"
-            << "run: store " << options.store_path << " (open mosaic.vrt or the .qlr in QGIS)\n";
+            << "run: store " << options.store_path
+            << " (open mosaic.vrt or irmosaic.qlr in QGIS; irmosaic_live.qlr, with the IRMOSAIC "
+               "plug-in, shows it grow live)\n";
   const nlohmann::json report = {
       {"frames_read", done},
       {"frames_placed", s.frames_placed},
