@@ -7,14 +7,17 @@
 #include <gtest/gtest.h>
 #include <ogr_spatialref.h>
 #include <ogrsf_frmts.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <nlohmann/json.hpp>
+#include <set>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -343,6 +346,96 @@ TEST_F(GdalDriverTest, AnOpenDatasetShowsTilesPublishedLaterInsideItsExtent) {
   EXPECT_EQ(Sample(fixed->GetRasterBand(2), 566, 66), 0.0);
   EXPECT_STREQ(fixed->GetMetadataItem("IRMOSAIC_GENERATION"), "1");
   EXPECT_EQ(errors.count, 0) << errors.last;
+}
+
+// A live dataset held open while another process publishes (as QGIS holds a layer during a
+// flight): every read succeeds, every covered tile is whole and no older than the generation the
+// read took, and the reader follows the writer through its generations. Generation g paints a
+// growing square of 128-pixel tiles with 1000 + g, inside the planned extent set at the start.
+TEST(GdalDriverLiveTest, AHeldDatasetFollowsAWriterProcessWithoutErrorsOrTornTiles) {
+  const fs::path dir = FreshDir("live_writer") / "s.irmosaic";
+  constexpr int kTile = 128, kGenerations = 30;
+  const pid_t writer = fork();
+  if (writer == 0) {
+    int code = 0;
+    try {
+      TileStoreOptions options;
+      options.path = dir.string();
+      options.tile_size = kTile;
+      const LocalFrame frame(kLat0, kLon0);
+      auto store = TileStore::Open(options, {kLat0, kLon0, kGsd, frame.CrsWkt()});
+      store->SetPlannedBoundsPx(cv::Rect(-kTile, -kTile, 7 * kTile, 7 * kTile));
+      for (int64_t g = 1; g <= kGenerations; ++g) {
+        const int tiles = 2 + static_cast<int>(std::min<int64_t>(g / 3, 5));
+        cv::Mat image(tiles * kTile, tiles * kTile, CV_16U, cv::Scalar(1000.0 + g));
+        store->Paint(image, cv::Mat(image.size(), CV_32F, cv::Scalar(1.0f)), {-kTile, -kTile});
+        store->PutFrameRecord(Frame(g, 0.04 * static_cast<double>(g)));
+        store->WaitPublished(store->RequestPublish());
+        usleep(20000);  // A flight publishes a few times a second.
+      }
+      store->Close();
+    } catch (...) {
+      code = 1;
+    }
+    _exit(code);
+  }
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (!fs::exists(dir / "manifest.json") && std::chrono::steady_clock::now() < deadline) {
+    usleep(2000);
+  }
+  GDALDatasetUniquePtr ds;
+  while (!ds && std::chrono::steady_clock::now() < deadline) {  // Until the first tiles.
+    GdalErrors quiet;
+    ds = OpenWith(dir, "IRMOSAIC");
+    if (!ds) usleep(2000);
+  }
+  ASSERT_TRUE(ds) << "no generation with tiles within 60 s";
+  ASSERT_EQ(ds->GetRasterXSize(), 7 * kTile);  // The planned extent from the first open.
+  int reads = 0, problems = 0, status = 0;
+  std::set<int64_t> generations;
+  std::string first_problem;
+  GdalErrors errors;
+  const int n = 7 * kTile;
+  cv::Mat data(n, n, CV_16U), alpha(n, n, CV_16U);
+  bool writing = true;
+  while (writing && std::chrono::steady_clock::now() < deadline) {
+    writing = waitpid(writer, &status, WNOHANG) == 0;
+    std::string problem;
+    if (ds->GetRasterBand(1)->RasterIO(GF_Read, 0, 0, n, n, data.data, n, n, GDT_UInt16, 0, 0,
+                                       nullptr) != CE_None ||
+        ds->GetRasterBand(2)->RasterIO(GF_Read, 0, 0, n, n, alpha.data, n, n, GDT_UInt16, 0, 0,
+                                       nullptr) != CE_None) {
+      problem = "read failed: " + errors.last;
+    }
+    const int64_t generation = std::atoll(ds->GetMetadataItem("IRMOSAIC_GENERATION"));
+    generations.insert(generation);
+    for (int y = 0; y < n && problem.empty(); y += kTile) {
+      for (int x = 0; x < n && problem.empty(); x += kTile) {
+        const cv::Rect tile(x, y, kTile, kTile);
+        double lo = 0, hi = 0;
+        cv::minMaxLoc(data(tile), &lo, &hi);
+        if (hi == 0) continue;  // Not painted (yet, for this read).
+        if (lo != hi) problem = "torn tile: " + std::to_string(lo) + ".." + std::to_string(hi);
+        if (lo < 1000.0 + static_cast<double>(generation)) {
+          problem =
+              "tile " + std::to_string(lo) + " older than generation " + std::to_string(generation);
+        }
+        cv::minMaxLoc(alpha(tile), &lo, &hi);
+        if (lo != 65535) problem = "painted tile not wholly covered in the alpha band";
+      }
+    }
+    ++reads;
+    if (!problem.empty() && problems++ == 0) first_problem = problem;
+  }
+  ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << "writer failed";
+  EXPECT_EQ(problems, 0) << first_problem << " (" << reads << " reads)";
+  EXPECT_EQ(errors.count, 0) << errors.last;
+  EXPECT_GE(reads, 5);
+  // It followed the writer: through several generations to the last (the loop reads once more
+  // after the writer exited); held with LIVE=NO it stays at the generation of its open.
+  EXPECT_GE(generations.size(), 3u) << reads << " reads";
+  EXPECT_EQ(*generations.rbegin(), kGenerations);
+  fs::remove_all(dir.parent_path());
 }
 
 // A planned extent (the flight's, foreseen from POS) is the extent served from the first
