@@ -87,7 +87,8 @@ std::string BuildQlr(const std::string& layer_name, const std::string& crs_wkt, 
     << "  </layer-tree-group>\n  <maplayers>\n";
   // The mosaic: repainted every 2 s (1 s live), alpha band for coverage, thermal ramp.
   x << "    <maplayer type=\"raster\" autoRefreshEnabled=\"1\" autoRefreshTime=\""
-    << (live ? 1000 : 2000) << "\" "
+    << (live ? 1000 : 2000)
+    << "\" "
        "hasScaleBasedVisibilityFlag=\"0\" minScale=\"1e+08\" maxScale=\"0\" "
        "styleCategories=\"AllStyleCategories\">\n"
     << "      <id>" << raster_id << "</id>\n      <datasource>" << raster_source
