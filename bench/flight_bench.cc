@@ -5,7 +5,7 @@
 //   flight_bench [--frames N] [--paced-frames N] [--compare 100,300] [--no-compare]
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
-//                [--solve-every N]
+//                [--solve-every N] [--registration-threads N] [--ground-cache-mb N]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
 // against freshness on disk, optimizer cost against accuracy) is measured on the same frames.
@@ -17,6 +17,7 @@
 // its own child process (this program with --child) so its peak memory is its own.
 // Frames are rendered by a producer thread; the pipeline's CPU time excludes it (thread CPU
 // clocks), which the load of a shared machine does not inflate much.
+#include <malloc.h>
 #include <pthread.h>
 #include <spawn.h>
 #include <sys/resource.h>
@@ -94,10 +95,30 @@ double StatusMiB(const char* key) {
 // Resets the peak resident size (VmHWM) so each scenario reports its own peak.
 void ResetPeakRss() { std::ofstream("/proc/self/clear_refs") << "5"; }
 
+// glibc heap figures (mallinfo2, every arena), MiB: in use (incl. mmapped chunks) or free.
+double HeapMiB(bool in_use) {
+  const struct mallinfo2 m = mallinfo2();
+  const size_t bytes = in_use ? m.uordblks + m.hblkhd : m.fordblks;
+  return static_cast<double>(bytes) / 1048576.0;
+}
+
+// Overrides of MosaickerOptions defaults (negative: keep the default).
+struct Tuning {
+  double publish_interval_s = -1.0;
+  int max_rerenders_per_solve = -1;
+  double rerender_threshold_px = -1.0;
+  int window_frames = -1;
+  int solve_every_frames = -1;
+  int registration_threads = -1;
+  int ground_cache_mb = -1;  // The simulator's (the benchmark's input), not the pipeline's.
+};
+Tuning g_tuning;
+
 irmosaic::SynthOptions FlightOptions(int frames) {
   irmosaic::SynthOptions options =
       irmosaic::SynthOptions::LoadJson(irmosaic::testing::SamplePath("sample_flight/flight.json"));
   options.frame_count = frames;
+  if (g_tuning.ground_cache_mb > 0) options.ground_cache_mb = g_tuning.ground_cache_mb;
   return options;
 }
 
@@ -177,15 +198,6 @@ class Producer {
   std::thread thread_;
 };
 
-// Overrides of MosaickerOptions defaults (negative: keep the default).
-struct Tuning {
-  double publish_interval_s = -1.0;
-  int max_rerenders_per_solve = -1;
-  double rerender_threshold_px = -1.0;
-  int window_frames = -1;
-  int solve_every_frames = -1;
-};
-Tuning g_tuning;
 
 struct RunConfig {
   int frames = 2000;
@@ -213,6 +225,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.window_frames > 0) options.fusion.window_frames = g_tuning.window_frames;
   if (g_tuning.solve_every_frames > 0) {
     options.fusion.solve_every_frames = g_tuning.solve_every_frames;
+  }
+  if (g_tuning.registration_threads > 0) {
+    options.registration_threads = g_tuning.registration_threads;
   }
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
@@ -260,6 +275,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              {"peak_rss_mib", StatusMiB("VmHWM")},
              {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames},
              {"held_images", mosaicker.summary().fusion.held_images},
+             // glibc's heap, all arenas: bytes in live allocations (small + mmapped) and
+             // free bytes the heap keeps (fragmentation, or ready for reuse).
+             {"heap_in_use_mib", HeapMiB(true)},
+             {"heap_free_mib", HeapMiB(false)},
+             {"simulator_cache_mib", static_cast<double>(sim.ground().cached_bytes()) / 1048576.0},
              {"held_image_mib",
               static_cast<double>(mosaicker.summary().fusion.held_image_bytes) / 1048576.0}});
         const auto& c = checkpoints.back();
@@ -268,7 +288,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
                   << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame, RSS "
                   << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
                   << "), images held " << c["held_images"].get<int64_t>() << " ("
-                  << c["held_image_mib"].get<double>() << " MiB)" << std::endl;
+                  << c["held_image_mib"].get<double>() << " MiB), simulator's ground cache "
+                  << c["simulator_cache_mib"].get<double>() << " MiB, heap in use "
+                  << c["heap_in_use_mib"].get<double>() << " MiB, heap free "
+                  << c["heap_free_mib"].get<double>() << " MiB" << std::endl;
         last_wall = wall;
         last_cpu = cpu;
         last_frames = static_cast<int>(pushed);
@@ -323,6 +346,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"writer_cpu_ms_per_frame", st.writer_cpu_ms / config.frames},
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
             {"tiles_written", st.tiles_written},
+            {"tile_reloads", st.tile_reloads},
             {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
             {"optimizer_solves", s.fusion.solves},
             {"optimizer_mean_solve_ms",
@@ -343,6 +367,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"mean_painted_lag_px", s.fusion.mean_painted_lag_px},
             {"window_frames", options.fusion.window_frames},
             {"solve_every_frames", options.fusion.solve_every_frames},
+            {"registration_threads", options.registration_threads},
+            {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
   }
@@ -592,13 +618,18 @@ int main(int argc, char** argv) {
       g_tuning.window_frames = std::stoi(value());
     } else if (a == "--solve-every") {
       g_tuning.solve_every_frames = std::stoi(value());
+    } else if (a == "--registration-threads") {
+      g_tuning.registration_threads = std::stoi(value());
+    } else if (a == "--ground-cache-mb") {
+      g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--child") {
       child = value();
     } else {
       std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
-                   "[--window N] [--solve-every N]\n";
+                   "[--window N] [--solve-every N] [--registration-threads N] "
+                   "[--ground-cache-mb N]\n";
       return 2;
     }
   }
@@ -644,14 +675,15 @@ int main(int argc, char** argv) {
               << (optimize ? "with" : "without") << " the optimizer):\n"
               << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
               << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(10)
-              << "RSS MiB" << std::setw(11) << "peak MiB"
+              << "RSS MiB" << std::setw(11) << "peak MiB" << std::setw(17) << "sim cache MiB"
               << "\n";
     for (const auto& c : f["checkpoints"]) {
       std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
                 << std::setw(10) << Fixed(c["wall_s"], 1) << std::setw(12)
                 << Fixed(c["segment_frames_per_s"], 1) << std::setw(14)
                 << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(10)
-                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0)
+                << std::setw(17) << Fixed(c["simulator_cache_mib"], 0) << "\n";
     }
     std::cout << "total: " << Fixed(f["frames_per_s"], 1) << " frames/s wall (foreground "
               << Fixed(f["foreground_frames_per_s"], 1) << ", finish " << Fixed(f["finish_s"], 1)
@@ -666,7 +698,8 @@ int main(int argc, char** argv) {
               << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
               << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
               << f["frames_pos_only"].get<int64_t>() << "\n"
-              << "tiles written " << f["tiles_written"].get<int64_t>() << ", re-renders "
+              << "tiles written " << f["tiles_written"].get<int64_t>() << " (read back "
+              << f["tile_reloads"].get<int64_t>() << "), re-renders "
               << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]
               << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
               << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)

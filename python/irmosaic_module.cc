@@ -337,6 +337,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("tile_size", &MosaickerOptions::tile_size)
       .def_readwrite("compression", &MosaickerOptions::compression)
       .def_readwrite("planned_extent", &MosaickerOptions::planned_extent)
+      .def_readwrite("registration_threads", &MosaickerOptions::registration_threads)
       .def_readwrite("fusion", &MosaickerOptions::fusion)
       .def("validate", [](const MosaickerOptions& o) {
         std::string error;

@@ -272,6 +272,15 @@ int64_t SyntheticGround::tiles_generated() const {
   return impl_->generated;
 }
 
+int64_t SyntheticGround::cached_bytes() const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  int64_t bytes = 0;
+  for (const auto& [key, tile] : impl_->lru) {
+    bytes += static_cast<int64_t>(tile.total() * tile.elemSize());
+  }
+  return bytes;
+}
+
 void SyntheticGround::Attach(const LocalFrame& frame, const MosaicGrid& grid) {
   Impl& g = *impl_;
   g.grid = grid;

@@ -12,6 +12,8 @@
 #include <cstdint>
 #include <cstring>
 #include <deque>
+#include <exception>
+#include <future>
 #include <map>
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
@@ -82,6 +84,9 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (candidate_frames < 0) return fail("candidate_frames must be >= 0 (0: window_frames)");
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
   if (max_neighbours < 1) return fail("max_neighbours must be at least 1");
+  if (registration_threads < 1 || registration_threads > 64) {
+    return fail("registration_threads must be in 1..64");
+  }
   if (!(min_overlap_fraction > 0.0 && min_overlap_fraction < 1.0))
     return fail("min_overlap_fraction must be in (0, 1)");
   if (!(pos_sigma_px > 0.0)) return fail("pos_sigma_px must be positive");
@@ -179,8 +184,10 @@ class MapFusion::Impl {
     std::vector<Eigen::Vector2d> template_pts, mosaic_pts;
     std::vector<std::pair<double, double>> radiometric;  // (value in new frame, target value).
     std::vector<Pair> new_pairs;
-    for (const auto& [score, neighbour] : scored) {
-      PairMatch match = registrar_(neighbour->data, frame->data);
+    std::vector<PairMatch> matches = RegisterPairs(scored, frame->data);
+    for (size_t k = 0; k < scored.size(); ++k) {
+      const std::shared_ptr<Held>& neighbour = scored[k].second;
+      PairMatch match = std::move(matches[k]);
       ++pairs_tried_;
       if (!match.ok) {
         placement.note += "pair with " + std::to_string(neighbour->data.index) +
@@ -538,6 +545,46 @@ class MapFusion::Impl {
       *gain = x(0);
       *offset = x(1) * scale;
     }
+  }
+
+  // Registers `templ` to each scored neighbour; up to registration_threads pairs at once (the
+  // calling thread takes its share). Results in the order of `scored`; an exception of any
+  // pair is rethrown here, after every pair has finished.
+  std::vector<PairMatch> RegisterPairs(
+      const std::vector<std::pair<double, std::shared_ptr<Held>>>& scored,
+      const FusionFrame& templ) {
+    std::vector<PairMatch> matches(scored.size());
+    const size_t threads =
+        std::min(scored.size(), static_cast<size_t>(options_.registration_threads));
+    if (threads <= 1) {
+      for (size_t k = 0; k < scored.size(); ++k) {
+        matches[k] = registrar_(scored[k].second->data, templ);
+      }
+      return matches;
+    }
+    std::atomic<size_t> next{0};
+    auto work = [&] {
+      for (size_t k = next++; k < scored.size(); k = next++) {
+        matches[k] = registrar_(scored[k].second->data, templ);
+      }
+    };
+    std::vector<std::future<void>> helpers;
+    for (size_t t = 1; t < threads; ++t) helpers.push_back(std::async(std::launch::async, work));
+    std::exception_ptr failure;
+    try {
+      work();
+    } catch (...) {
+      failure = std::current_exception();
+    }
+    for (std::future<void>& helper : helpers) {
+      try {
+        helper.get();
+      } catch (...) {
+        if (!failure) failure = std::current_exception();
+      }
+    }
+    if (failure) std::rethrow_exception(failure);
+    return matches;
   }
 
   // Paints a frame's `image` (its own reference: the producer may release the held one

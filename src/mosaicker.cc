@@ -244,6 +244,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (!(search_radius_px >= 4.0 && search_radius_px <= 1024.0))
     return fail("search_radius_px must be in [4, 1024]");
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
+  if (registration_threads < 1 || registration_threads > 64) {
+    return fail("registration_threads must be in 1..64");
+  }
   if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
@@ -311,9 +314,11 @@ class Mosaicker::Impl : public MosaicSink {
     // placement error from 2.02 to 3.08 px (scripts/run-sample.sh), through its known bias on
     // unblurred noisy pairs (docs/matching.md, "Dense refinement").
     registration.fine.dense_refinement = false;
-    registrar_ = std::make_unique<PairRegistrar>(registration);
+    registration_ = registration;
+    FusionOptions fusion = options_.fusion;
+    fusion.registration_threads = options_.registration_threads;  // Register() is thread-safe.
     fusion_ = std::make_unique<MapFusion>(
-        options_.fusion, camera_,
+        fusion, camera_,
         [this](const FusionFrame& base, const FusionFrame& templ) { return Register(base, templ); },
         this);
     // Resuming reads the pixel type from the store; a store killed before its first publish
@@ -799,6 +804,7 @@ class Mosaicker::Impl : public MosaicSink {
   // a frame clipped at max_range_m registered with ground it does not show).
   std::shared_ptr<OrthoImage> BuildPosOrtho(const FusionFrame& frame) {
     auto ortho = std::make_shared<OrthoImage>();
+    std::lock_guard<std::mutex> lock(ortho_build_mu_);  // ortho_'s scratch; pairs run at once.
     ortho_.Run(frame.image, frame.pos_mosaic_from_image, ortho.get(), frame.image_clip);
     return ortho;
   }
@@ -812,8 +818,22 @@ class Mosaicker::Impl : public MosaicSink {
     const OrthoImage& templ = *templ_ortho;
     const Eigen::Vector2d predicted(templ.origin_px.x - base.origin_px.x,
                                     templ.origin_px.y - base.origin_px.y);
-    const PairRegistration r = registrar_->Register(base.image, base.mask, templ.image, templ.mask,
-                                                    predicted, options_.search_radius_px);
+    // A registrar of the pool (scratch buffers are per registrar): pairs run at once.
+    std::unique_ptr<PairRegistrar> registrar;
+    {
+      std::lock_guard<std::mutex> lock(registrar_mu_);
+      if (!registrars_.empty()) {
+        registrar = std::move(registrars_.back());
+        registrars_.pop_back();
+      }
+    }
+    if (!registrar) registrar = std::make_unique<PairRegistrar>(registration_);
+    const PairRegistration r = registrar->Register(base.image, base.mask, templ.image, templ.mask,
+                                                   predicted, options_.search_radius_px);
+    {
+      std::lock_guard<std::mutex> lock(registrar_mu_);
+      registrars_.push_back(std::move(registrar));
+    }
     if (!r.ok()) {
       match.reason = std::string(ToString(r.status)) + ": " + r.reason;
       return match;
@@ -898,7 +918,11 @@ class Mosaicker::Impl : public MosaicSink {
   MosaicGrid grid_;
   StoreGeoreference georef_;
   Orthorectifier ortho_;
-  std::unique_ptr<PairRegistrar> registrar_;
+  std::mutex ortho_build_mu_;  // Guards ortho_ (BuildPosOrtho).
+  PairRegistrationOptions registration_;
+  // Idle registrars, one per pair registered at once (MosaickerOptions::registration_threads).
+  std::mutex registrar_mu_;
+  std::vector<std::unique_ptr<PairRegistrar>> registrars_;
   // Frames' POS orthoimages, newest last: two sweeps of the default flight and some margin.
   static constexpr size_t kOrthoCacheFrames = 24;
   std::mutex ortho_mu_;

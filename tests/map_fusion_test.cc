@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
@@ -380,6 +381,98 @@ TEST(MapFusionTest, HeldImagesAreBoundedByTheCandidates) {
   EXPECT_EQ(fusion.stats().held_frames, 16);
 }
 
+// Pairs of a new frame registered at once: the same placements, in the same order, as one
+// at a time; the registrar really runs concurrently; a failure of any pair reaches the caller.
+TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
+  const Sweep s = MakeSweep(24, 6, 2.0, 0.3, 5);
+  std::atomic<int> in_flight{0}, most_in_flight{0};
+  std::atomic<int64_t> throw_for_template{-1};
+  // Ties from the truth with noise seeded by the pair alone, so the order of the calls cannot
+  // change them; each call lasts a few ms so that concurrent calls overlap.
+  const PairRegisterFn registrar = [&](const FusionFrame& base, const FusionFrame& templ) {
+    const int now = ++in_flight;
+    for (int seen = most_in_flight.load(); now > seen;) {
+      if (most_in_flight.compare_exchange_weak(seen, now)) break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    --in_flight;
+    if (templ.index == throw_for_template && base.index != templ.index - 1) {
+      throw std::runtime_error("registrar failure for frame " + std::to_string(templ.index));
+    }
+    std::mt19937 rng(static_cast<uint32_t>(base.index * 1000 + templ.index));
+    std::normal_distribution<double> noise(0.0, 0.2);
+    const Eigen::Matrix3d base_from_templ = s.truth[base.index].inverse() * s.truth[templ.index];
+    PairMatch m;
+    for (int y = 8; y < s.camera.height; y += 40) {
+      for (int x = 8; x < s.camera.width; x += 40) {
+        const Eigen::Vector2d pb = ApplyHomography(base_from_templ, {x, y});
+        if (pb.x() < 8 || pb.y() < 8 || pb.x() > s.camera.width - 8 ||
+            pb.y() > s.camera.height - 8) {
+          continue;
+        }
+        m.template_points.emplace_back(x + noise(rng), y + noise(rng));
+        m.base_points.emplace_back(pb.x() + noise(rng), pb.y() + noise(rng));
+      }
+    }
+    m.ok = m.base_points.size() >= 8;
+    if (!m.ok) m.reason = "too little overlap";
+    m.base_from_template = base_from_templ;
+    return m;
+  };
+  auto run = [&](int threads) {
+    FusionOptions options;
+    options.optimize = false;  // The chained placements alone: no timing dependence.
+    options.render = false;
+    options.registration_threads = threads;
+    MapFusion fusion(options, s.camera, registrar, nullptr);
+    std::vector<FramePlacement> placements;
+    for (int64_t i = 0; i < 24; ++i) {
+      FusionFrame f;
+      f.index = i;
+      f.time_s = static_cast<double>(i) * 0.04;
+      f.image = cv::Mat(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+      f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+      placements.push_back(fusion.Push(std::move(f)));
+    }
+    return placements;
+  };
+  const std::vector<FramePlacement> one = run(1);
+  EXPECT_EQ(most_in_flight, 1);
+  most_in_flight = 0;
+  const std::vector<FramePlacement> two = run(2);
+  EXPECT_EQ(most_in_flight, 2);
+  ASSERT_EQ(one.size(), two.size());
+  int registered_to_two = 0;
+  for (size_t k = 0; k < one.size(); ++k) {
+    EXPECT_EQ(one[k].neighbours, two[k].neighbours) << "frame " << k;
+    EXPECT_EQ(one[k].mosaic_from_image, two[k].mosaic_from_image) << "frame " << k;
+    EXPECT_EQ(one[k].inliers, two[k].inliers) << "frame " << k;
+    registered_to_two += two[k].neighbours.size() == 2 ? 1 : 0;
+  }
+  EXPECT_GE(registered_to_two, 12);  // Most frames have two neighbours to register at once.
+  // A registrar that throws for the second pair of frame 10 (run on a helper thread, or on
+  // the caller's): Push reports it, after both pairs finished.
+  throw_for_template = 10;
+  FusionOptions options;
+  options.optimize = false;
+  options.render = false;
+  options.registration_threads = 2;
+  MapFusion fusion(options, s.camera, registrar, nullptr);
+  for (int64_t i = 0; i <= 10; ++i) {
+    FusionFrame f;
+    f.index = i;
+    f.time_s = static_cast<double>(i) * 0.04;
+    f.image = cv::Mat(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+    f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+    if (i < 10) {
+      fusion.Push(std::move(f));
+    } else {
+      EXPECT_THROW(fusion.Push(std::move(f)), std::runtime_error);
+    }
+  }
+  EXPECT_EQ(in_flight, 0);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;
@@ -395,6 +488,10 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.sparse_library = "NO_SUCH_LIBRARY";
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("sparse_library"), std::string::npos);
+  options = FusionOptions();
+  options.registration_threads = 0;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("registration_threads"), std::string::npos);
   options = FusionOptions();
   options.candidate_frames = -1;
   EXPECT_FALSE(options.IsValid(&error));

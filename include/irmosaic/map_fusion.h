@@ -82,6 +82,10 @@ struct FusionOptions {
   int candidate_frames = 0;
   int solve_every_frames = 8;           // A window solve starts after this many new frames.
   int max_neighbours = 2;               // Registrations per new frame (previous + best other).
+  // Pairs of a new frame registered at once, on that many threads (the caller's and helpers);
+  // above 1 the registrar is called concurrently and must be thread-safe. The results and
+  // their order are the same for any value.
+  int registration_threads = 1;
   int max_ties_per_pair = 24;           // Tie points kept per pair for the optimizer.
   double min_overlap_fraction = 0.08;   // Of the smaller footprint, to try a pair.
   double pos_sigma_px = 6.0;            // POS placement accuracy (1 sigma, px) for frames that

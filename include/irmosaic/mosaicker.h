@@ -46,6 +46,11 @@ struct MosaickerOptions {
   // mosaic grow over it without reopening the layer. Off, or with poses pushed directly, the
   // store's extent is the painted one.
   bool planned_extent = true;
+  // Pairs of a new frame registered at once (FusionOptions::registration_threads, which this
+  // replaces): 2 registers a frame to its two neighbours on two threads, the same placements.
+  // 1 by default: on 2 cores the whole pipeline is CPU-bound and gained nothing over 3000+
+  // frames, for 30-60 MiB more peak memory (docs/benchmarks.md, "Session 7").
+  int registration_threads = 1;
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.

@@ -175,6 +175,8 @@ class IRMOSAIC_EXPORT SyntheticGround {
   void Fill(int64_t col0, int64_t row0, int cols, int rows, cv::Mat* out) const;
   // Tiles generated so far (for the benchmark).
   int64_t tiles_generated() const;
+  // Bytes of generated tiles held in the cache now (bounded by SynthOptions::ground_cache_mb).
+  int64_t cached_bytes() const;
 
  private:
   struct Impl;
