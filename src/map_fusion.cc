@@ -22,6 +22,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "buffer_view.h"
 #include "fusion_cost.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -115,14 +116,16 @@ bool FusionOptions::IsValid(std::string* error) const {
 }
 
 class MapFusion::Impl {
+  struct Renderer;  // Below: an orthorectifier and a weight buffer per painting thread.
+
  public:
   Impl(FusionOptions options, CameraModel camera, PairRegisterFn registrar, MosaicSink* sink)
       : options_(options),
         camera_(std::move(camera)),
         registrar_(std::move(registrar)),
         sink_(sink),
-        foreground_ortho_(camera_),
-        background_ortho_(camera_) {
+        foreground_(camera_),
+        background_(camera_) {
     std::string error;
     if (!options_.IsValid(&error)) throw std::invalid_argument("FusionOptions: " + error);
     normalizer_ = {(camera_.width - 1) / 2.0, (camera_.height - 1) / 2.0,
@@ -278,7 +281,7 @@ class MapFusion::Impl {
       }
       ReleaseImagesLocked();
     }
-    Render(frame->data.image, frame->data.image_clip, placement, &foreground_ortho_);
+    Render(frame->data.image, frame->data.image_clip, placement, &foreground_);
     if (sink_) sink_->FramePlaced(placement);
     if (options_.optimize) cv_.notify_one();
     return placement;
@@ -590,13 +593,15 @@ class MapFusion::Impl {
   // Paints a frame's `image` (its own reference: the producer may release the held one
   // meanwhile) with the part `image_clip` at `placement`.
   void Render(const cv::Mat& image, const std::vector<Eigen::Vector2d>& image_clip,
-              const FramePlacement& placement, Orthorectifier* ortho) {
+              const FramePlacement& placement, Renderer* renderer) {
     if (!sink_ || !options_.render) return;
+    // The orthoimage and the weights live in the renderer's buffers (no allocation per frame
+    // once warm); the gain is applied in place.
     OrthoImage out;
-    ortho->Run(image, placement.mosaic_from_image, &out, image_clip);
-    cv::Mat compensated;
+    renderer->ortho.Run(image, placement.mosaic_from_image, &out, image_clip);
+    cv::Mat& compensated = out.image;
     out.image.convertTo(compensated, out.image.type(), placement.gain, placement.offset);
-    cv::Mat weight;
+    cv::Mat weight = BufferView(&renderer->weight_backing, out.mask.size(), CV_32F);
     if (camera_.HasDistortion()) {
       cv::Mat distance;
       cv::distanceTransform(out.mask, distance, cv::DIST_L2, cv::DIST_MASK_3, CV_32F);
@@ -970,10 +975,9 @@ class MapFusion::Impl {
       stats_.rerendered_frames += static_cast<int64_t>(moved.size());
       if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
     }
-    Orthorectifier* ortho =
-        final_solve || last_slot != SIZE_MAX ? &foreground_ortho_ : &background_ortho_;
+    Renderer* renderer = final_solve || last_slot != SIZE_MAX ? &foreground_ : &background_;
     for (const auto& [frame, placement] : moved) {
-      Render(images[frame->slot], frame->data.image_clip, placement, ortho);
+      Render(images[frame->slot], frame->data.image_clip, placement, renderer);
       if (sink_) sink_->FramePlaced(placement);
     }
   }
@@ -1093,8 +1097,15 @@ class MapFusion::Impl {
   PairRegisterFn registrar_;
   MosaicSink* sink_;
   Normalizer normalizer_;
-  Orthorectifier foreground_ortho_;
-  Orthorectifier background_ortho_;
+  // A renderer per thread that paints: the caller's (new frames, the final solve) and the
+  // optimizer's (re-renders).
+  struct Renderer {
+    explicit Renderer(const CameraModel& camera) : ortho(camera) { ortho.set_reuse_output(true); }
+    Orthorectifier ortho;
+    cv::Mat weight_backing;
+  };
+  Renderer foreground_;
+  Renderer background_;
 
   mutable std::mutex mu_;
   std::condition_variable cv_;

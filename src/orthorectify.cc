@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "buffer_view.h"
 #include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -89,6 +90,10 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
                      "raise the ground sample distance or the size limit, or check the pose");
   }
   const cv::Size size(static_cast<int>(width), static_cast<int>(height));
+  if (reuse_output_) {
+    out->image = BufferView(&image_backing_, size, frame.type());
+    out->mask = BufferView(&mask_backing_, size, CV_8U);
+  }
   Eigen::Matrix3d shift = Eigen::Matrix3d::Identity();
   shift(0, 2) = -x0;
   shift(1, 2) = -y0;
@@ -161,8 +166,8 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
   std::vector<cv::Point2d> pixels;
   const cv::Matx33d k(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
   cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), k, camera_.distortion, pixels);
-  map_x_.create(size, CV_32F);
-  map_y_.create(size, CV_32F);
+  map_x_ = BufferView(&map_x_backing_, size, CV_32F);
+  map_y_ = BufferView(&map_y_backing_, size, CV_32F);
   for (int y = 0; y < size.height; ++y) {
     for (int x = 0; x < size.width; ++x) {
       const cv::Point2d& p = pixels[static_cast<size_t>(y) * size.width + x];

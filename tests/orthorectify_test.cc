@@ -130,6 +130,36 @@ TEST(OrthorectifyTest, DistortionIsUndoneInTheSameResampling) {
   EXPECT_LT(worst_dn, 8.0);  // Two bilinear resamplings of a pattern of <= 400 DN/px.
 }
 
+// With reused output buffers: the same pixels as fresh buffers, with and without distortion,
+// as the orthoimage's size changes; once the largest size has been seen, no new buffer.
+TEST(OrthorectifyTest, ReusedOutputBuffersGiveTheSameOrthoimages) {
+  for (const bool distorted : {false, true}) {
+    CameraModel camera = DefaultInfraredCamera();
+    if (distorted) camera.distortion = {-0.2, 0.05, 0.0, 0.0, 0.0};
+    const cv::Mat frame = SmoothPattern(camera.width, camera.height);
+    Orthorectifier fresh(camera), reused(camera);
+    reused.set_reuse_output(true);
+    const uchar* largest_buffer = nullptr;
+    // The nadir frame's orthoimage is the smallest, 35 degrees off nadir the largest.
+    for (const double sweep : {-20.0, 0.0, -35.0, 0.0, -20.0, -35.0}) {
+      const Eigen::Matrix3d h = ObliqueHomography(camera, sweep);
+      OrthoImage a, b;
+      fresh.Run(frame, h, &a);
+      reused.Run(frame, h, &b);
+      ASSERT_EQ(a.image.size(), b.image.size()) << "sweep " << sweep;
+      EXPECT_EQ(a.origin_px, b.origin_px);
+      EXPECT_EQ(cv::norm(a.image, b.image, cv::NORM_INF), 0.0) << "sweep " << sweep;
+      EXPECT_EQ(cv::norm(a.mask, b.mask, cv::NORM_INF), 0.0) << "sweep " << sweep;
+      if (sweep == -35.0) {
+        if (largest_buffer) {
+          EXPECT_EQ(b.image.data, largest_buffer) << "distorted " << distorted;
+        }
+        largest_buffer = b.image.data;
+      }
+    }
+  }
+}
+
 TEST(OrthorectifyTest, BadFramesAreRefused) {
   const CameraModel camera = DefaultInfraredCamera();
   const Eigen::Matrix3d h = ObliqueHomography(camera);

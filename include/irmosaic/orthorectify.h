@@ -42,8 +42,14 @@ class IRMOSAIC_EXPORT Orthorectifier {
   // As the free function; `out`'s buffers are reused when sizes allow.
   void Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_from_image, OrthoImage* out,
            const std::vector<Eigen::Vector2d>& image_clip = {});
+  // On: Run renders into buffers this Orthorectifier keeps, grown to the largest orthoimage
+  // so far, and `out`'s image and mask point into them, valid until the next Run (for callers
+  // that hand the result on at once). No allocation per frame once warm. Off by default.
+  void set_reuse_output(bool on) { reuse_output_ = on; }
 
  private:
+  bool reuse_output_ = false;
+  cv::Mat image_backing_, mask_backing_, map_x_backing_, map_y_backing_;
   CameraModel camera_;
   OrthoOptions options_;
   cv::Mat full_mask_;
