@@ -198,7 +198,6 @@ class Producer {
   std::thread thread_;
 };
 
-
 struct RunConfig {
   int frames = 2000;
   double rate_hz = 0.0;  // 0: as fast as possible.

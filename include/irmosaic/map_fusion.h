@@ -80,8 +80,8 @@ struct FusionOptions {
   // Only they and the frames a solve may still re-render keep their images; older frames
   // stay held without pixels as the frozen ends of pairs (docs/fusion.md, "Held images").
   int candidate_frames = 0;
-  int solve_every_frames = 8;           // A window solve starts after this many new frames.
-  int max_neighbours = 2;               // Registrations per new frame (previous + best other).
+  int solve_every_frames = 8;  // A window solve starts after this many new frames.
+  int max_neighbours = 2;      // Registrations per new frame (previous + best other).
   // Pairs of a new frame registered at once, on that many threads (the caller's and helpers);
   // above 1 the registrar is called concurrently and must be thread-safe. The results and
   // their order are the same for any value.
