@@ -387,14 +387,22 @@ TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
   const Sweep s = MakeSweep(24, 6, 2.0, 0.3, 5);
   std::atomic<int> in_flight{0}, most_in_flight{0};
   std::atomic<int64_t> throw_for_template{-1};
+  std::atomic<bool> await_overlap{false};
+  std::atomic<int> waited_ms{0};  // Of all calls together.
   // Ties from the truth with noise seeded by the pair alone, so the order of the calls cannot
-  // change them; each call lasts a few ms so that concurrent calls overlap.
+  // change them. With await_overlap, a call waits (up to 50 ms, 2 s for all calls) until two
+  // have been in flight at once: a helper thread slow to start on a loaded machine cannot hide
+  // the overlap, and with one registration at a time the waits time out and the count stays 1.
   const PairRegisterFn registrar = [&](const FusionFrame& base, const FusionFrame& templ) {
     const int now = ++in_flight;
     for (int seen = most_in_flight.load(); now > seen;) {
       if (most_in_flight.compare_exchange_weak(seen, now)) break;
     }
-    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    for (int ms = 0; await_overlap && most_in_flight < 2 && ms < 50 && ++waited_ms <= 2000; ++ms) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    if (most_in_flight >= 2) await_overlap = false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
     --in_flight;
     if (templ.index == throw_for_template && base.index != templ.index - 1) {
       throw std::runtime_error("registrar failure for frame " + std::to_string(templ.index));
@@ -439,7 +447,9 @@ TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
   const std::vector<FramePlacement> one = run(1);
   EXPECT_EQ(most_in_flight, 1);
   most_in_flight = 0;
+  await_overlap = true;
   const std::vector<FramePlacement> two = run(2);
+  await_overlap = false;
   EXPECT_EQ(most_in_flight, 2);
   ASSERT_EQ(one.size(), two.size());
   int registered_to_two = 0;
