@@ -246,6 +246,18 @@ struct TileStore::Impl {
   void EvictLocked();
   void WriterLoop();
   void PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock);
+  // Drops the writer's references to snapshot images (lock not held on entry) under the lock.
+  // The snapshot shares its buffers with the cache: Paint copies a shared buffer under the lock
+  // and drops its own reference inside OpenCV (reference count in uninstrumented code, with
+  // acquire-release order), so the writer may free a buffer after a painter's read. That order
+  // is real; dropping under the lock makes it visible to ThreadSanitizer too (a free outside
+  // the lock was reported as a race), at the cost of a lock per level per publish.
+  static void ReleaseSnapshot(std::map<TileIndex, TileImage>* images,
+                              std::unique_lock<std::mutex>& lock) {
+    lock.lock();
+    images->clear();
+    lock.unlock();
+  }
   std::map<TileIndex, TileImage> UpdateOverviewLevel(int level,
                                                      const std::map<TileIndex, TileImage>& children,
                                                      int64_t* bytes, int64_t* tiles);
@@ -501,14 +513,15 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     if (!secondary) {
       // Deferred: the latest image of each tile waits (shared buffers, no copy) for the next
       // overview update.
-      for (auto& [index, image] : level0) overview_owed[index] = std::move(image);
-      level0.clear();
+      // (level0 is left with the older images this replaces, released under the lock.)
+      for (auto& [index, image] : level0) std::swap(overview_owed[index], image);
+      ReleaseSnapshot(&level0, lock);
     } else {
       for (auto& [index, image] : overview_owed) {
         snapshot.push_back(index);  // A failure below leaves them owed again.
         level0.try_emplace(index, std::move(image));
       }
-      overview_owed.clear();
+      ReleaseSnapshot(&overview_owed, lock);
     }
     // Tiles written by a failed publish still owe their overviews.
     for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
@@ -533,6 +546,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       std::map<TileIndex, TileImage> parents =
           UpdateOverviewLevel(level, children, &bytes, &tiles_written);
       for (const auto& [index, image] : parents) next.levels[level].insert(index);
+      ReleaseSnapshot(&children, lock);
       children = std::move(parents);
     }
     // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
