@@ -111,6 +111,10 @@ struct Tuning {
   int solve_every_frames = -1;
   int registration_threads = -1;
   int ground_cache_mb = -1;  // The simulator's (the benchmark's input), not the pipeline's.
+  // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
+  // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
+  // not adopted: docs/benchmarks.md.
+  int64_t mmap_threshold = 0;
 };
 Tuning g_tuning;
 
@@ -504,7 +508,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    "--json",
                                    json_path,
                                    "--store",
-                                   store_root + "/child_store"};
+                                   store_root + "/child_store",
+                                   "--mmap-threshold",
+                                   std::to_string(g_tuning.mmap_threshold)};
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
@@ -621,6 +627,8 @@ int main(int argc, char** argv) {
       g_tuning.registration_threads = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
       g_tuning.ground_cache_mb = std::stoi(value());
+    } else if (a == "--mmap-threshold") {
+      g_tuning.mmap_threshold = std::stoll(value());
     } else if (a == "--child") {
       child = value();
     } else {
@@ -628,11 +636,18 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--ground-cache-mb N]\n";
+                   "[--ground-cache-mb N] [--mmap-threshold BYTES]\n";
       return 2;
     }
   }
   cv::setNumThreads(2);  // The target machine: 2 cores.
+  // The Mosaicker's processes only (the peers keep glibc's default).
+  if (child != "stitcher" && child != "orb" && g_tuning.mmap_threshold > 0 &&
+      mallopt(M_MMAP_THRESHOLD, static_cast<int>(g_tuning.mmap_threshold)) != 1) {
+    std::cerr << "flight_bench: glibc refused --mmap-threshold " << g_tuning.mmap_threshold
+              << "\n";
+    return 2;
+  }
 
   if (!child.empty()) {
     nlohmann::json result;
@@ -661,6 +676,7 @@ int main(int argc, char** argv) {
   std::filesystem::create_directories(store);
   nlohmann::json doc;
   doc["machine"] = MachineLine();
+  doc["mmap_threshold"] = g_tuning.mmap_threshold;
   std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
 
   if (frames > 0) {
