@@ -644,8 +644,7 @@ int main(int argc, char** argv) {
   // The Mosaicker's processes only (the peers keep glibc's default).
   if (child != "stitcher" && child != "orb" && g_tuning.mmap_threshold > 0 &&
       mallopt(M_MMAP_THRESHOLD, static_cast<int>(g_tuning.mmap_threshold)) != 1) {
-    std::cerr << "flight_bench: glibc refused --mmap-threshold " << g_tuning.mmap_threshold
-              << "\n";
+    std::cerr << "flight_bench: glibc refused --mmap-threshold " << g_tuning.mmap_threshold << "\n";
     return 2;
   }
 
