@@ -110,6 +110,7 @@ struct Tuning {
   int window_frames = -1;
   int solve_every_frames = -1;
   int registration_threads = -1;
+  int heap_trim_interval_frames = -1;
   int ground_cache_mb = -1;  // The simulator's (the benchmark's input), not the pipeline's.
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
@@ -232,6 +233,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.registration_threads > 0) {
     options.registration_threads = g_tuning.registration_threads;
   }
+  if (g_tuning.heap_trim_interval_frames >= 0) {
+    options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
+  }
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
@@ -350,6 +354,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
             {"tiles_written", st.tiles_written},
             {"tile_reloads", st.tile_reloads},
+            {"overview_reads", st.overview_reads},
             {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
             {"optimizer_solves", s.fusion.solves},
             {"optimizer_mean_solve_ms",
@@ -371,6 +376,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"window_frames", options.fusion.window_frames},
             {"solve_every_frames", options.fusion.solve_every_frames},
             {"registration_threads", options.registration_threads},
+            {"heap_trim_interval_frames", options.heap_trim_interval_frames},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
@@ -625,6 +631,8 @@ int main(int argc, char** argv) {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
       g_tuning.registration_threads = std::stoi(value());
+    } else if (a == "--heap-trim-every") {
+      g_tuning.heap_trim_interval_frames = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
@@ -636,7 +644,7 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--ground-cache-mb N] [--mmap-threshold BYTES]\n";
+                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES]\n";
       return 2;
     }
   }
@@ -713,7 +721,8 @@ int main(int argc, char** argv) {
               << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
               << f["frames_pos_only"].get<int64_t>() << "\n"
               << "tiles written " << f["tiles_written"].get<int64_t>() << " (read back "
-              << f["tile_reloads"].get<int64_t>() << "), re-renders "
+              << f["tile_reloads"].get<int64_t>() << ", overviews read "
+              << f["overview_reads"].get<int64_t>() << "), re-renders "
               << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]
               << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
               << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)

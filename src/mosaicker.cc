@@ -1,6 +1,11 @@
 #include "irmosaic/mosaicker.h"
 
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
+
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <deque>
@@ -247,6 +252,7 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (registration_threads < 1 || registration_threads > 64) {
     return fail("registration_threads must be in 1..64");
   }
+  if (heap_trim_interval_frames < 0) return fail("heap_trim_interval_frames must be >= 0");
   if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
@@ -337,6 +343,13 @@ class Mosaicker::Impl : public MosaicSink {
                   Clock::time_point arrival) {
     PushResult result;
     Count(&MosaickerSummary::frames_pushed);
+    if (options_.heap_trim_interval_frames > 0 &&
+        ++pushed_since_trim_ >= options_.heap_trim_interval_frames) {
+      pushed_since_trim_ = 0;
+#if defined(__GLIBC__)
+      malloc_trim(0);
+#endif
+    }
     auto skip = [&](const std::string& reason) {
       result.reason =
           "frame " + std::to_string(index) + " (time " + Format(time_s) + " s): " + reason;
@@ -602,6 +615,8 @@ class Mosaicker::Impl : public MosaicSink {
   }
 
  private:
+  std::atomic<int> pushed_since_trim_{0};  // MosaickerOptions::heap_trim_interval_frames.
+
   void Count(int64_t MosaickerSummary::*counter) {
     std::lock_guard<std::mutex> lock(mu_);
     ++(summary_.*counter);

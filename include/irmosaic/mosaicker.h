@@ -51,6 +51,11 @@ struct MosaickerOptions {
   // 1 by default: on 2 cores the whole pipeline is CPU-bound and gained nothing over 3000+
   // frames, for 30-60 MiB more peak memory (docs/benchmarks.md, "Session 7").
   int registration_threads = 1;
+  // Every this many pushed frames, Push returns the free pages the C library's heap keeps to
+  // the system (glibc malloc_trim; buffers of varying size freed on several threads leave free
+  // memory the heap otherwise holds on to and grows over a long flight: docs/benchmarks.md,
+  // "Session 8"). 0: never. The call is process-wide.
+  int heap_trim_interval_frames = 250;
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.
