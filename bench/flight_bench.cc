@@ -36,6 +36,7 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <limits>
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/calib3d.hpp>
@@ -651,7 +652,8 @@ int main(int argc, char** argv) {
   cv::setNumThreads(2);  // The target machine: 2 cores.
   // The Mosaicker's processes only (the peers keep glibc's default).
   if (child != "stitcher" && child != "orb" && g_tuning.mmap_threshold > 0 &&
-      mallopt(M_MMAP_THRESHOLD, static_cast<int>(g_tuning.mmap_threshold)) != 1) {
+      (g_tuning.mmap_threshold > std::numeric_limits<int>::max() ||
+       mallopt(M_MMAP_THRESHOLD, static_cast<int>(g_tuning.mmap_threshold)) != 1)) {
     std::cerr << "flight_bench: glibc refused --mmap-threshold " << g_tuning.mmap_threshold << "\n";
     return 2;
   }

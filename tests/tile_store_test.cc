@@ -14,7 +14,6 @@
 
 #include <GeographicLib/Geodesic.hpp>
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -609,7 +608,7 @@ TEST(TileStoreTest, PaintingDuringPublishesKeepsTheLastPaintedValues) {
   PaintSquare(store.get(), {0, 0}, 512, 1);  // 8 x 8 tiles: overview levels 1 to 3.
   store->WaitPublished(store->RequestPublish());
   // How long publishing one changed tile takes here (sanitizers slow it down).
-  auto start = std::chrono::steady_clock::now();
+  const auto start = std::chrono::steady_clock::now();
   PaintSquare(store.get(), {0, 0}, 64, 2);
   store->WaitPublished(store->RequestPublish());
   const auto publish_time = std::chrono::steady_clock::now() - start;
