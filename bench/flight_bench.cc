@@ -117,6 +117,9 @@ struct Tuning {
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
   // not adopted: docs/benchmarks.md.
   int64_t mmap_threshold = 0;
+  // OpenCV's worker threads (cv::setNumThreads) for the whole process: the warps and filters of
+  // every stage split over them. 2, the target machine's cores, by default.
+  int cv_threads = 2;
 };
 Tuning g_tuning;
 
@@ -517,7 +520,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    "--store",
                                    store_root + "/child_store",
                                    "--mmap-threshold",
-                                   std::to_string(g_tuning.mmap_threshold)};
+                                   std::to_string(g_tuning.mmap_threshold),
+                                   "--cv-threads",
+                                   std::to_string(g_tuning.cv_threads)};
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
@@ -638,6 +643,8 @@ int main(int argc, char** argv) {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
       g_tuning.mmap_threshold = std::stoll(value());
+    } else if (a == "--cv-threads") {
+      g_tuning.cv_threads = std::stoi(value());
     } else if (a == "--child") {
       child = value();
     } else {
@@ -645,11 +652,15 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES]\n";
+                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES] [--cv-threads N]\n";
       return 2;
     }
   }
-  cv::setNumThreads(2);  // The target machine: 2 cores.
+  if (g_tuning.cv_threads < 1) {
+    std::cerr << "flight_bench: --cv-threads must be at least 1\n";
+    return 2;
+  }
+  cv::setNumThreads(g_tuning.cv_threads);
   // The Mosaicker's processes only (the peers keep glibc's default).
   if (child != "stitcher" && child != "orb" && g_tuning.mmap_threshold > 0 &&
       (g_tuning.mmap_threshold > std::numeric_limits<int>::max() ||
@@ -686,6 +697,7 @@ int main(int argc, char** argv) {
   nlohmann::json doc;
   doc["machine"] = MachineLine();
   doc["mmap_threshold"] = g_tuning.mmap_threshold;
+  doc["cv_threads"] = g_tuning.cv_threads;
   std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
 
   if (frames > 0) {

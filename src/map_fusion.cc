@@ -1100,7 +1100,15 @@ class MapFusion::Impl {
   // A renderer per thread that paints: the caller's (new frames, the final solve) and the
   // optimizer's (re-renders).
   struct Renderer {
-    explicit Renderer(const CameraModel& camera) : ortho(camera) { ortho.set_reuse_output(true); }
+    // Painting reads the orthoimage where the weights are above 0 only, inside the footprint.
+    explicit Renderer(const CameraModel& camera) : ortho(camera, FootprintOnly()) {
+      ortho.set_reuse_output(true);
+    }
+    static OrthoOptions FootprintOnly() {
+      OrthoOptions options;
+      options.footprint_only = true;
+      return options;
+    }
     Orthorectifier ortho;
     cv::Mat weight_backing;
   };

@@ -5,6 +5,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
+#include <utility>
 
 #include "buffer_view.h"
 #include "irmosaic/error.h"
@@ -32,6 +33,40 @@ void ApplyClip(const std::vector<Eigen::Vector2d>& image_clip,
   cv::fillConvexPoly(keep, polygon.data(), static_cast<int>(polygon.size()), cv::Scalar(255),
                      cv::LINE_8, kShift);
   cv::bitwise_and(*mask, keep, *mask);
+}
+
+// x-range [x0, x1) of the convex polygon `poly` between rows y0 and y1 (inclusive, pixel
+// centres), grown by `margin` and clamped to [0, width); empty (x0 >= x1) when they do not meet.
+// Sutherland-Hodgman against the two horizontal half-planes.
+std::pair<int, int> PolygonSpan(const std::array<Eigen::Vector2d, 4>& poly, double y0, double y1,
+                                double margin, int width) {
+  double lo = INFINITY, hi = -INFINITY;
+  const double top = y0 - margin, bottom = y1 + margin;
+  for (size_t k = 0; k < poly.size(); ++k) {
+    const Eigen::Vector2d& a = poly[k];
+    const Eigen::Vector2d& b = poly[(k + 1) % poly.size()];
+    // The part of edge a-b inside [top, bottom], if any.
+    double t0 = 0.0, t1 = 1.0;
+    const double dy = b.y() - a.y();
+    if (dy == 0.0) {
+      if (a.y() < top || a.y() > bottom) continue;
+    } else {
+      double ta = (top - a.y()) / dy, tb = (bottom - a.y()) / dy;
+      if (ta > tb) std::swap(ta, tb);
+      t0 = std::max(t0, ta);
+      t1 = std::min(t1, tb);
+      if (t0 > t1) continue;
+    }
+    for (const double t : {t0, t1}) {
+      const double x = a.x() + t * (b.x() - a.x());
+      lo = std::min(lo, x);
+      hi = std::max(hi, x);
+    }
+  }
+  if (!(lo <= hi)) return {0, 0};
+  const int x0 = std::max(0, static_cast<int>(std::floor(lo - margin)));
+  const int x1 = std::min(width, static_cast<int>(std::ceil(hi + margin)) + 1);
+  return {x0, std::max(x0, x1)};
 }
 
 }  // namespace
@@ -127,26 +162,61 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
           Eigen::Vector2d(size.width, size.height)}) {
       worst = std::max(worst, (ApplyHomography(inv, p) - affine * p.homogeneous()).norm());
     }
-    if (worst < kAffineTolerancePx) {
-      const cv::Matx23d m(affine(0, 0), affine(0, 1), affine(0, 2), affine(1, 0), affine(1, 1),
-                          affine(1, 2));
-      cv::warpAffine(frame, out->image, m, size, options_.interpolation | cv::WARP_INVERSE_MAP,
-                     cv::BORDER_REPLICATE);
+    const bool use_affine = worst < kAffineTolerancePx;
+    const cv::Matx23d m(affine(0, 0), affine(0, 1), affine(0, 2), affine(1, 0), affine(1, 1),
+                        affine(1, 2));
+    // Without distortion the footprint is the quadrilateral of the outer pixel edges.
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(w - 0.5, -0.5),
+        Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
+    std::array<Eigen::Vector2d, 4> footprint;
+    for (int c = 0; c < 4; ++c) footprint[c] = ApplyHomography(out->ortho_from_image, corners[c]);
+    if (!options_.footprint_only) {
+      if (use_affine) {
+        cv::warpAffine(frame, out->image, m, size, options_.interpolation | cv::WARP_INVERSE_MAP,
+                       cv::BORDER_REPLICATE);
+      } else {
+        cv::warpPerspective(frame, out->image, image_from_ortho, size,
+                            options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+      }
     } else {
-      cv::warpPerspective(frame, out->image, image_from_ortho, size,
-                          options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+      // Bands of rows, each warped over the footprint's span in it: the maps shifted by the
+      // band's corner (x0, y0), since OpenCV's warps write from the destination's (0, 0).
+      out->image.create(size, frame.type());
+      constexpr int kBandRows = 32;
+      constexpr double kMarginPx = 2.0;
+      for (int band_y0 = 0; band_y0 < size.height; band_y0 += kBandRows) {
+        const int band_y1 = std::min(size.height, band_y0 + kBandRows);
+        const auto [band_x0, band_x1] = PolygonSpan(footprint, band_y0, band_y1 - 1, kMarginPx, size.width);
+        cv::Mat band = out->image.rowRange(band_y0, band_y1);
+        if (band_x0 >= band_x1) {
+          band.setTo(0);
+          continue;
+        }
+        if (band_x0 > 0) band.colRange(0, band_x0).setTo(0);
+        if (band_x1 < size.width) band.colRange(band_x1, size.width).setTo(0);
+        cv::Mat part = band.colRange(band_x0, band_x1);
+        const double sx = band_x0, sy = band_y0;
+        if (use_affine) {
+          cv::Matx23d shifted = m;
+          shifted(0, 2) += m(0, 0) * sx + m(0, 1) * sy;
+          shifted(1, 2) += m(1, 0) * sx + m(1, 1) * sy;
+          cv::warpAffine(frame, part, shifted, part.size(),
+                         options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+        } else {
+          const cv::Matx33d band_shift(1, 0, sx, 0, 1, sy, 0, 0, 1);
+          cv::warpPerspective(frame, part, image_from_ortho * band_shift, part.size(),
+                              options_.interpolation | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+        }
+      }
     }
-    // Without distortion the footprint is the quadrilateral of the outer pixel edges; filling
-    // it (sub-pixel vertices) costs a fraction of a second warp.
+    // Filling the quadrilateral (sub-pixel vertices) costs a fraction of a second warp.
     out->mask.create(size, CV_8U);
     out->mask.setTo(0);
     constexpr int kShift = 4;
     std::array<cv::Point, 4> quad;
-    const std::array<Eigen::Vector2d, 4> corners = {
-        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(w - 0.5, -0.5),
-        Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
     for (int c = 0; c < 4; ++c) {
-      const Eigen::Vector2d p = ApplyHomography(out->ortho_from_image, corners[c]);
+      const Eigen::Vector2d& p = footprint[c];
       quad[c] = cv::Point(static_cast<int>(std::lround(p.x() * (1 << kShift))),
                           static_cast<int>(std::lround(p.y() * (1 << kShift))));
     }

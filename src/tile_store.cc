@@ -144,6 +144,29 @@ bool BlendEight(const uint16_t* src, const float* w, uint16_t* dst, uchar* cover
 }
 #endif
 
+// Whether BlendInto would look at any sample of `roi`: a weight above zero (NaN is not). Paint
+// asks before it touches a tile, so a tile the patch's bounding box reaches but its footprint
+// does not (an oblique, rotated frame fills about half of its box) is neither read back from
+// disk, created, nor copied.
+bool AnyPositiveWeight(const cv::Mat& weight, const cv::Rect& roi) {
+  for (int y = 0; y < roi.height; ++y) {
+    const float* w = weight.ptr<float>(roi.y + y) + roi.x;
+    int x = 0;
+#if CV_SIMD128
+    const cv::v_float32x4 zero = cv::v_setzero_f32();
+    for (; x + 8 <= roi.width; x += 8) {
+      if (cv::v_check_any((cv::v_load(w + x) > zero) | (cv::v_load(w + x + 4) > zero))) {
+        return true;
+      }
+    }
+#endif
+    for (; x < roi.width; ++x) {
+      if (w[x] > 0.0f) return true;
+    }
+  }
+  return false;
+}
+
 template <typename T>
 bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
                cv::Mat* data, cv::Mat* alpha, const cv::Rect& tile_roi) {
@@ -851,6 +874,7 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
                                static_cast<int>(y1 - y0));
       const cv::Rect tile_roi(static_cast<int>(x0 - tx), static_cast<int>(y0 - ty), patch_roi.width,
                               patch_roi.height);
+      if (!AnyPositiveWeight(weight, patch_roi)) continue;
       Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
       if (tile.shared) {
         tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};

@@ -160,6 +160,43 @@ TEST(OrthorectifyTest, ReusedOutputBuffersGiveTheSameOrthoimages) {
   }
 }
 
+// Footprint only (the renderer's setting): the same mask, and under it the same pixels as the
+// whole-box warp up to OpenCV's resampling grain: each band's map starts at the band's corner,
+// so a coordinate may round to the neighbouring step of OpenCV's 1/32 px interpolation table
+// (the affine shortcut rounds its fixed-point start per band; at most 400 / 32 = 12.5 DN on this
+// pattern of <= 400 DN per pixel). Outside the footprint's bands nothing is resampled: under
+// 60 % of the box 35 degrees off nadir, where the whole-box warp resamples all of it.
+TEST(OrthorectifyTest, FootprintOnlyWarpsTheFootprintAndMatchesTheWholeBox) {
+  const CameraModel camera = DefaultInfraredCamera();
+  const cv::Mat frame = SmoothPattern(camera.width, camera.height);
+  OrthoOptions footprint_only;
+  footprint_only.footprint_only = true;
+  Orthorectifier whole(camera), part(camera, footprint_only);
+  part.set_reuse_output(true);  // As the renderer runs it: stale values must not survive.
+  // Oblique (warpPerspective) and nadir (the affine shortcut), twice so reused buffers are hit.
+  for (const double sweep : {-35.0, 0.0, -20.0, -35.0}) {
+    const Eigen::Matrix3d h = ObliqueHomography(camera, sweep);
+    OrthoImage a, b;
+    whole.Run(frame, h, &a);
+    part.Run(frame, h, &b);
+    ASSERT_EQ(a.image.size(), b.image.size());
+    EXPECT_EQ(a.origin_px, b.origin_px);
+    EXPECT_EQ(cv::norm(a.mask, b.mask, cv::NORM_INF), 0.0) << "sweep " << sweep;
+    cv::Mat diff, differs;
+    cv::absdiff(a.image, b.image, diff);
+    EXPECT_LE(cv::norm(diff, cv::NORM_INF, a.mask), 13.0) << "sweep " << sweep;
+    cv::compare(diff, 0, differs, cv::CMP_GT);
+    cv::bitwise_and(differs, a.mask, differs);
+    EXPECT_LT(cv::countNonZero(differs), cv::countNonZero(a.mask) / 20) << "sweep " << sweep;
+    // Resampled samples (the pattern is >= 10000 DN) hold the whole-box values there too.
+    const cv::Mat resampled = b.image != 0;
+    EXPECT_LE(cv::norm(diff, cv::NORM_INF, resampled), 13.0) << "sweep " << sweep;
+    if (sweep == -35.0) {
+      EXPECT_LT(cv::countNonZero(resampled), 0.6 * b.image.total());
+    }
+  }
+}
+
 TEST(OrthorectifyTest, BadFramesAreRefused) {
   const CameraModel camera = DefaultInfraredCamera();
   const Eigen::Matrix3d h = ObliqueHomography(camera);

@@ -565,6 +565,40 @@ TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
   store->Close();
 }
 
+// An oblique frame's footprint fills about half of its bounding box: tiles the box reaches but
+// the weights do not must not be read back from disk, created, or marked painted.
+TEST(TileStoreTest, TilesUnderZeroWeightsAreNotTouched) {
+  const fs::path dir = FreshDir("zero_weight") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.max_cached_tiles = 4;
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  // Four tiles on disk, then out of memory (the cache holds four tiles).
+  PaintSquare(store.get(), {0, 0}, 128, 100);
+  store->WaitPublished(store->RequestPublish());
+  PaintSquare(store.get(), {1024, 1024}, 128, 50);  // Four more: the first four leave.
+  store->WaitPublished(store->RequestPublish());
+  const TileStore::Stats before = store->stats();
+  // A patch over all four, with weight only in the top-left tile.
+  cv::Mat image(128, 128, CV_8U, cv::Scalar(200));
+  cv::Mat weight(128, 128, CV_32F, cv::Scalar(0.0f));
+  weight(cv::Rect(10, 10, 20, 20)).setTo(1.0f);
+  store->Paint(image, weight, {0, 0});
+  const TileStore::Stats after = store->stats();
+  EXPECT_EQ(after.tile_reloads - before.tile_reloads, 1);
+  // A patch whose weights are all 0 over never-painted ground creates no tile.
+  store->Paint(image, cv::Mat(128, 128, CV_32F, cv::Scalar(0.0f)), {5000, 5000});
+  EXPECT_EQ(store->stats().tile_reloads, after.tile_reloads);
+  const int64_t published = store->RequestPublish();
+  store->WaitPublished(published);
+  EXPECT_EQ(store->stats().tiles_on_disk, 8u);
+  cv::Mat read, coverage;
+  store->ReadWindow({0, 0, 128, 128}, &read, &coverage);
+  EXPECT_EQ(cv::countNonZero(read == 200), 20 * 20);
+  EXPECT_EQ(cv::countNonZero(read == 100), 128 * 128 - 20 * 20);
+  store->Close();
+}
+
 // Deferred overviews keep the latest image of every tile they owe: a burst of painting (the
 // final solve's re-renders) must not hold more than max_cached_tiles of them, whatever the
 // interval; the overviews then follow early.

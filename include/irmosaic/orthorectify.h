@@ -23,6 +23,11 @@ struct OrthoImage {
 struct OrthoOptions {
   int interpolation = cv::INTER_LINEAR;
   int max_side_px = 8192;  // Larger orthoimages are refused (a footprint gone absurd).
+  // Frames without lens distortion only: resample just the footprint (plus a 2-pixel margin),
+  // in bands of rows, and set the rest of the bounding box to 0, where the default fills it by
+  // replicating the frame's border. A rotated oblique footprint covers about half of its box,
+  // so this halves the warp; for callers that read the image under the mask only (rendering).
+  bool footprint_only = false;
 };
 
 // Warps `frame` (CV_8U, CV_16U or CV_32F, one channel) with the correction homography

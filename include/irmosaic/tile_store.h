@@ -99,8 +99,10 @@ class IRMOSAIC_EXPORT TileStore {
   // Blends a rendered patch into level 0: out = w*image + (1-w)*existing, where an uncovered
   // existing pixel counts as weight 0 (it takes the patch wherever w > 0). image has the store's
   // pixel type (CvDepthOf), one channel; weight is CV_32F in [0, 1], same size; top-left at
-  // mosaic pixel origin_px (signed). Thread-safe. Blocks on disk only to reload a tile that left
-  // memory, or when more than twice max_cached_tiles tiles wait for the writer (back-pressure).
+  // mosaic pixel origin_px (signed). Tiles under the patch where every weight is 0 are not
+  // touched (not loaded, created or copied). Thread-safe. Blocks on disk only to reload a tile
+  // that left memory, or when more than twice max_cached_tiles tiles wait for the writer
+  // (back-pressure).
   void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px);
 
   // Inserts or replaces (by index) a frame's footprint record; published with the next
