@@ -652,7 +652,8 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES] [--cv-threads N]\n";
+                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES] "
+                   "[--cv-threads N]\n";
       return 2;
     }
   }

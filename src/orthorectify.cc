@@ -187,7 +187,8 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
       constexpr double kMarginPx = 2.0;
       for (int band_y0 = 0; band_y0 < size.height; band_y0 += kBandRows) {
         const int band_y1 = std::min(size.height, band_y0 + kBandRows);
-        const auto [band_x0, band_x1] = PolygonSpan(footprint, band_y0, band_y1 - 1, kMarginPx, size.width);
+        const auto [band_x0, band_x1] =
+            PolygonSpan(footprint, band_y0, band_y1 - 1, kMarginPx, size.width);
         cv::Mat band = out->image.rowRange(band_y0, band_y1);
         if (band_x0 >= band_x1) {
           band.setTo(0);
