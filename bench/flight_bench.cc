@@ -357,6 +357,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"writer_cpu_ms_per_frame", st.writer_cpu_ms / config.frames},
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
             {"tiles_written", st.tiles_written},
+            {"overview_tiles_written", st.overview_tiles_written},
             {"tile_reloads", st.tile_reloads},
             {"overview_reads", st.overview_reads},
             {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
@@ -735,7 +736,8 @@ int main(int argc, char** argv) {
               << Fixed(f["store_bytes_per_frame"].get<double>() / 1024.0, 1)
               << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
               << f["frames_pos_only"].get<int64_t>() << "\n"
-              << "tiles written " << f["tiles_written"].get<int64_t>() << " (read back "
+              << "tiles written " << f["tiles_written"].get<int64_t>() << " (overviews "
+              << f["overview_tiles_written"].get<int64_t>() << "; read back "
               << f["tile_reloads"].get<int64_t>() << ", overviews read "
               << f["overview_reads"].get<int64_t>() << "), re-renders "
               << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]

@@ -519,7 +519,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 
   const Clock::time_point start = Clock::now();
   const double cpu_start_ms = ThreadCpuMs();
-  int64_t bytes = 0, tiles_written = 0;
+  int64_t bytes = 0, tiles_written = 0, overview_written = 0;
   std::string error;
   std::vector<TileIndex> snapshot;
   for (const auto& [index, image] : level0) snapshot.push_back(index);
@@ -564,6 +564,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     const int levels = secondary ? LevelsFor(next.levels[0]) : old_levels;
     next.levels.resize(levels + 1);
     std::map<TileIndex, TileImage> children = std::move(level0);
+    const int64_t level0_written = tiles_written;
     for (int level = 1; level <= levels; ++level) {
       if (level > old_levels) {
         for (const TileIndex& tile : next.levels[level - 1]) {
@@ -579,6 +580,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       ReleaseSnapshot(&children, lock);
       children = std::move(parents);
     }
+    overview_written = tiles_written - level0_written;
     // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
     std::vector<const TileImage*> top;
     for (const auto& [index, image] : children) top.push_back(&image);
@@ -630,6 +632,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.overview_reads = overview_reads;
   stats.index_bytes_total = index_bytes;
   stats.tiles_written += tiles_written;
+  stats.overview_tiles_written += overview_written;
   stats.bytes_written += bytes;
   if (error.empty()) {
     published_generation = generation;

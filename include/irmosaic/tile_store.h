@@ -143,6 +143,7 @@ class IRMOSAIC_EXPORT TileStore {
   // Figures of the store's work so far.
   struct Stats {
     int64_t tiles_written = 0;      // Tile files written (all levels).
+    int64_t overview_tiles_written = 0;  // Of those: overview tiles (levels above 0).
     int64_t bytes_written = 0;      // Bytes of tile files written.
     int64_t publishes = 0;          // Generations published by this process.
     int64_t tile_reloads = 0;       // Tiles read back from disk after leaving memory.
