@@ -28,6 +28,7 @@
 
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
+#include "../src/store_internal.h"
 #include "manifest_tiles.h"
 
 namespace irmosaic {
@@ -563,6 +564,43 @@ TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
   store->ReadWindow({0, 0, 60 * 64, 64}, &image, &coverage);
   EXPECT_EQ(cv::countNonZero(image == 150), 60 * 64 * 64);
   store->Close();
+}
+
+// Overview tiles: HalveTile's one-pass integer path gives exactly the coverage-weighted 2 x 2 mean
+// of the float formula (the reference below: weights, INTER_AREA sums, divide, round to
+// nearest even), over random values and coverage, the type's extremes and exact halves.
+TEST(TileStoreTest, HalvedTilesEqualTheFloatFormula) {
+  const auto reference = [](const store::TileImage& tile) {
+    cv::Mat covered, values, sum_values, sum_covered, mean, data;
+    tile.alpha.convertTo(covered, CV_32F, 1.0 / 255.0);
+    tile.data.convertTo(values, CV_32F);
+    values = values.mul(covered);
+    const cv::Size half(tile.data.cols / 2, tile.data.rows / 2);
+    cv::resize(values, sum_values, half, 0, 0, cv::INTER_AREA);
+    cv::resize(covered, sum_covered, half, 0, 0, cv::INTER_AREA);
+    cv::divide(sum_values, cv::max(sum_covered, 1e-6f), mean);
+    const cv::Mat alpha = sum_covered > 0.0f;
+    mean.setTo(0.0f, ~alpha);
+    mean.convertTo(data, tile.data.depth());
+    return store::TileImage{data, alpha};
+  };
+  std::mt19937 random(7);
+  for (const int depth : {CV_16U, CV_8U}) {
+    const double top = depth == CV_16U ? 65535 : 255;
+    store::TileImage tile{cv::Mat(64, 64, depth), cv::Mat(64, 64, CV_8U)};
+    for (int trial = 0; trial < 20; ++trial) {
+      cv::randu(tile.data, 0, top + 1);
+      if (trial % 4 == 1) tile.data.setTo(top);  // Saturation.
+      if (trial % 4 == 2) cv::randu(tile.data, 0, 4);  // Means of x.5 (to even) and x/3.
+      std::bernoulli_distribution cover(trial % 2 ? 0.5 : 0.9);
+      for (int y = 0; y < 64; ++y)
+        for (int x = 0; x < 64; ++x) tile.alpha.at<uchar>(y, x) = cover(random) ? 255 : 0;
+      const store::TileImage fast = store::HalveTile(tile), slow = reference(tile);
+      ASSERT_EQ(fast.data.type(), slow.data.type());
+      EXPECT_EQ(cv::norm(fast.data, slow.data, cv::NORM_INF), 0.0) << "trial " << trial;
+      EXPECT_EQ(cv::norm(fast.alpha, slow.alpha, cv::NORM_INF), 0.0) << "trial " << trial;
+    }
+  }
 }
 
 // An oblique frame's footprint fills about half of its bounding box: tiles the box reaches but
