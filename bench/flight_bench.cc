@@ -360,6 +360,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"overview_tiles_written", st.overview_tiles_written},
             {"tile_reloads", st.tile_reloads},
             {"overview_reads", st.overview_reads},
+            {"tile_copies", st.tile_copies},
             {"store_bytes_per_frame", static_cast<double>(store_bytes) / config.frames},
             {"optimizer_solves", s.fusion.solves},
             {"optimizer_mean_solve_ms",
@@ -739,7 +740,8 @@ int main(int argc, char** argv) {
               << "tiles written " << f["tiles_written"].get<int64_t>() << " (overviews "
               << f["overview_tiles_written"].get<int64_t>() << "; read back "
               << f["tile_reloads"].get<int64_t>() << ", overviews read "
-              << f["overview_reads"].get<int64_t>() << "), re-renders "
+              << f["overview_reads"].get<int64_t>() << ", copied before painting "
+              << f["tile_copies"].get<int64_t>() << "), re-renders "
               << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]
               << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
               << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)

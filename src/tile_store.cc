@@ -144,6 +144,9 @@ bool BlendEight(const uint16_t* src, const float* w, uint16_t* dst, uchar* cover
 }
 #endif
 
+// Whether another cv::Mat holds `m`'s buffer too.
+bool SharedBuffer(const cv::Mat& m) { return m.u != nullptr && m.u->refcount > 1; }
+
 // Whether BlendInto would look at any sample of `roi`: a weight above zero (NaN is not). Paint
 // asks before it touches a tile, so a tile the patch's bounding box reaches but its footprint
 // does not (an oblique, rotated frame fills about half of its box) is neither read back from
@@ -222,7 +225,9 @@ struct TileStore::Impl {
     TileImage image;
     bool dirty = false;    // Painted since its last snapshot by the writer.
     bool writing = false;  // Snapshot taken, file not yet renamed into place: keep in memory.
-    bool shared = false;   // Buffers shared with the writer's snapshot: copy before painting.
+    // Buffers given to a writer's snapshot: copy before painting while the writer still holds
+    // them (it lets go, under the lock, once the tile is on disk and halved for the overviews).
+    bool shared = false;
     uint64_t last_use = 0;
   };
   std::map<TileIndex, CachedTile> cache;
@@ -250,8 +255,9 @@ struct TileStore::Impl {
   // --- Writer-thread state (only the writer touches these after Open).
   store::Manifest manifest;   // The last published manifest.
   TileSet propagate_pending;  // Level-0 tiles written by a failed publish: overviews owe them.
-  // Level-0 tiles written while overviews were deferred (their latest images), and when the
-  // overviews and frames.gpkg were last brought up to date.
+  // Level-0 tiles written while overviews were deferred (their latest images, halved: what
+  // level 1 takes of them, a quarter of the memory), and when the overviews and frames.gpkg
+  // were last brought up to date.
   std::map<TileIndex, TileImage> overview_owed;
   Clock::time_point last_secondary{};
   std::map<std::pair<int, TileIndex>, TileImage> overview_cache;
@@ -281,6 +287,7 @@ struct TileStore::Impl {
     images->clear();
     lock.unlock();
   }
+  // Writes the level-`level` tiles over `children`: changed tiles of the level below, halved.
   std::map<TileIndex, TileImage> UpdateOverviewLevel(int level,
                                                      const std::map<TileIndex, TileImage>& children,
                                                      int64_t* bytes, int64_t* tiles);
@@ -391,7 +398,7 @@ std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
   for (const auto& [parent, kids] : by_parent) {
     TileImage image = OverviewTile(level, parent);
     for (const auto* kid : kids) {
-      const TileImage small = store::HalveTile(kid->second);
+      const TileImage& small = kid->second;  // Halved by the caller.
       const int qy = static_cast<int>(kid->first.first - 2 * parent.first);
       const int qx = static_cast<int>(kid->first.second - 2 * parent.second);
       const cv::Rect quadrant(qx * half, qy * half, half, half);
@@ -540,50 +547,60 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     // Work on a copy: the published manifest changes only once the index is written.
     store::Manifest next = manifest;
     for (const auto& [index, image] : level0) next.levels[0].insert(index);
+    // Level 1 needs each changed tile halved: done now, so the writer lets go of the painters'
+    // buffers at once (a tile painted again needs no copy) and a deferred tile waits for the
+    // next overview update at a quarter of its size.
+    std::map<TileIndex, TileImage> halves;
     if (!secondary) {
-      // Deferred: the latest image of each tile waits (shared buffers, no copy) for the next
-      // overview update.
-      // (level0 is left with the older images this replaces, released under the lock.)
-      for (auto& [index, image] : level0) std::swap(overview_owed[index], image);
-      ReleaseSnapshot(&level0, lock);
+      for (const auto& [index, image] : level0) overview_owed[index] = store::HalveTile(image);
     } else {
-      for (auto& [index, image] : overview_owed) {
-        snapshot.push_back(index);  // A failure below leaves them owed again.
-        level0.try_emplace(index, std::move(image));
-      }
-      ReleaseSnapshot(&overview_owed, lock);
+      halves.swap(overview_owed);
+      for (const auto& [index, image] : halves) snapshot.push_back(index);  // Owed on failure.
+      for (const auto& [index, image] : level0) halves[index] = store::HalveTile(image);
     }
+    // The display range below reads the top level's tiles; with no overview level, these.
+    std::vector<TileImage> level0_top;
+    if (secondary && LevelsFor(next.levels[0]) == 0) {
+      for (const auto& [index, image] : level0) level0_top.push_back(image);
+    }
+    ReleaseSnapshot(&level0, lock);
     // Tiles written by a failed publish still owe their overviews.
     for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
-      if (!level0.count(index)) {
-        level0[index] = store::ReadTile(PathOf(0, index), options.tile_size, type);
+      if (!halves.count(index)) {
+        halves[index] =
+            store::HalveTile(store::ReadTile(PathOf(0, index), options.tile_size, type));
       }
     }
     // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
     const int old_levels = static_cast<int>(next.levels.size()) - 1;
     const int levels = secondary ? LevelsFor(next.levels[0]) : old_levels;
     next.levels.resize(levels + 1);
-    std::map<TileIndex, TileImage> children = std::move(level0);
+    // Halved children of the level being updated (writer-owned: no painter shares them).
+    std::map<TileIndex, TileImage> children = std::move(halves);
+    std::map<TileIndex, TileImage> parents;  // The last level written, full size.
     const int64_t level0_written = tiles_written;
     for (int level = 1; level <= levels; ++level) {
       if (level > old_levels) {
         for (const TileIndex& tile : next.levels[level - 1]) {
           if (!children.count(tile)) {
-            children[tile] = level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type)
-                                        : OverviewTile(level - 1, tile);
+            children[tile] = store::HalveTile(
+                level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type)
+                           : OverviewTile(level - 1, tile));
           }
         }
       }
-      std::map<TileIndex, TileImage> parents =
-          UpdateOverviewLevel(level, children, &bytes, &tiles_written);
-      for (const auto& [index, image] : parents) next.levels[level].insert(index);
-      ReleaseSnapshot(&children, lock);
-      children = std::move(parents);
+      parents = UpdateOverviewLevel(level, children, &bytes, &tiles_written);
+      children.clear();
+      for (const auto& [index, image] : parents) {
+        next.levels[level].insert(index);
+        if (level < levels) children[index] = store::HalveTile(image);
+      }
     }
     overview_written = tiles_written - level0_written;
     // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
     std::vector<const TileImage*> top;
-    for (const auto& [index, image] : children) top.push_back(&image);
+    for (const auto& [index, image] : parents) top.push_back(&image);
+    for (const TileImage& image : level0_top) top.push_back(&image);
     double lo = 0, hi = 0;
     bool range_changed = false;
     if (store::CoveredPercentiles(top, &lo, &hi)) {
@@ -880,7 +897,12 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
       if (!AnyPositiveWeight(weight, patch_roi)) continue;
       Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
       if (tile.shared) {
-        tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};
+        // Every reference the writer takes or drops is taken or dropped under this lock, so the
+        // count is current: one (the cache's own) once the writer let go.
+        if (SharedBuffer(tile.image.data) || SharedBuffer(tile.image.alpha)) {
+          tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};
+          ++s.stats.tile_copies;
+        }
         tile.shared = false;
       }
       bool painted = false;

@@ -148,6 +148,7 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t publishes = 0;          // Generations published by this process.
     int64_t tile_reloads = 0;       // Tiles read back from disk after leaving memory.
     int64_t overview_reads = 0;     // Overview tiles read from disk to update them.
+    int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
     double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
     double writer_cpu_ms = 0.0;     // CPU time of that work (the load does not inflate it).
