@@ -228,7 +228,7 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
   } else {
     std::ofstream out(temp, std::ios::binary | std::ios::trunc);
     out.write(reinterpret_cast<const char*>(encoded), static_cast<std::streamsize>(length));
-    out.flush();
+    out.close();  // A file system may report a write error only here.
     if (!out) failure = std::strerror(errno);
   }
   CPLFree(encoded);

@@ -558,12 +558,15 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       for (const auto& [index, image] : halves) snapshot.push_back(index);  // Owed on failure.
       for (const auto& [index, image] : level0) halves[index] = store::HalveTile(image);
     }
-    // The display range below reads the top level's tiles; with no overview level, these.
+    // The display range below reads the top level's tiles; with no overview level, these. The
+    // references to the painters' buffers change hands under the lock (Paint reads the count).
     std::vector<TileImage> level0_top;
+    lock.lock();
     if (secondary && LevelsFor(next.levels[0]) == 0) {
       for (const auto& [index, image] : level0) level0_top.push_back(image);
     }
-    ReleaseSnapshot(&level0, lock);
+    level0.clear();
+    lock.unlock();
     // Tiles written by a failed publish still owe their overviews.
     for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
       if (!halves.count(index)) {
