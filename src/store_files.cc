@@ -292,13 +292,12 @@ TileImage HalveIntegerTile(const TileImage& tile) {
     uchar* covered = out.alpha.ptr<uchar>(y);
     for (int x = 0; x < w; ++x) {
       const int i = 2 * x;
-      const uint32_t m00 = c0[i] != 0, m01 = c0[i + 1] != 0, m10 = c1[i] != 0,
-                     m11 = c1[i + 1] != 0;
+      const uint32_t m00 = c0[i] != 0, m01 = c0[i + 1] != 0, m10 = c1[i] != 0, m11 = c1[i + 1] != 0;
       const uint32_t count = m00 + m01 + m10 + m11;
       const uint32_t sum = m00 * v0[i] + m01 * v0[i + 1] + m10 * v1[i] + m11 * v1[i + 1];
-      value[x] = count == 0 ? T(0)
-                            : cv::saturate_cast<T>(static_cast<float>(sum) /
-                                                   static_cast<float>(count));
+      value[x] = count == 0
+                     ? T(0)
+                     : cv::saturate_cast<T>(static_cast<float>(sum) / static_cast<float>(count));
       covered[x] = count == 0 ? 0 : 255;
     }
   }

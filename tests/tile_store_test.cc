@@ -26,9 +26,9 @@
 #include <set>
 #include <thread>
 
+#include "../src/store_internal.h"
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
-#include "../src/store_internal.h"
 #include "manifest_tiles.h"
 
 namespace irmosaic {
@@ -590,7 +590,7 @@ TEST(TileStoreTest, HalvedTilesEqualTheFloatFormula) {
     store::TileImage tile{cv::Mat(64, 64, depth), cv::Mat(64, 64, CV_8U)};
     for (int trial = 0; trial < 20; ++trial) {
       cv::randu(tile.data, 0, top + 1);
-      if (trial % 4 == 1) tile.data.setTo(top);  // Saturation.
+      if (trial % 4 == 1) tile.data.setTo(top);        // Saturation.
       if (trial % 4 == 2) cv::randu(tile.data, 0, 4);  // Means of x.5 (to even) and x/3.
       std::bernoulli_distribution cover(trial % 2 ? 0.5 : 0.9);
       for (int y = 0; y < 64; ++y)
