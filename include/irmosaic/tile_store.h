@@ -142,12 +142,12 @@ class IRMOSAIC_EXPORT TileStore {
 
   // Figures of the store's work so far.
   struct Stats {
-    int64_t tiles_written = 0;      // Tile files written (all levels).
+    int64_t tiles_written = 0;           // Tile files written (all levels).
     int64_t overview_tiles_written = 0;  // Of those: overview tiles (levels above 0).
-    int64_t bytes_written = 0;      // Bytes of tile files written.
-    int64_t publishes = 0;          // Generations published by this process.
-    int64_t tile_reloads = 0;       // Tiles read back from disk after leaving memory.
-    int64_t overview_reads = 0;     // Overview tiles read from disk to update them.
+    int64_t bytes_written = 0;           // Bytes of tile files written.
+    int64_t publishes = 0;               // Generations published by this process.
+    int64_t tile_reloads = 0;            // Tiles read back from disk after leaving memory.
+    int64_t overview_reads = 0;          // Overview tiles read from disk to update them.
     int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
     double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
