@@ -6,6 +6,7 @@
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
 //                [--solve-every N] [--registration-threads N] [--ground-cache-mb N]
+//                [--malloc-info DIR]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
 // against freshness on disk, optimizer cost against accuracy) is measured on the same frames.
@@ -29,6 +30,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstdio>
 #include <cstring>
 #include <ctime>
 #include <deque>
@@ -120,6 +122,9 @@ struct Tuning {
   // OpenCV's worker threads (cv::setNumThreads) for the whole process: the warps and filters of
   // every stage split over them. 2, the target machine's cores, by default.
   int cv_threads = 2;
+  // Folder for glibc's malloc_info XML at each checkpoint (free chunks by size, per arena):
+  // where the free memory the heap keeps sits, for the memory creep of long runs. Empty: none.
+  std::string malloc_info_dir;
 };
 Tuning g_tuning;
 
@@ -273,6 +278,16 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
       ++pushed;
       if (r.placed()) ++placed;
       if (config.checkpoints && next_mark < marks.size() && pushed == marks[next_mark]) {
+        if (!g_tuning.malloc_info_dir.empty()) {
+          const std::string path =
+              g_tuning.malloc_info_dir + "/malloc_info_" + std::to_string(pushed) + ".xml";
+          if (FILE* out = std::fopen(path.c_str(), "w")) {
+            malloc_info(0, out);
+            std::fclose(out);
+          } else {
+            std::cerr << "flight_bench: cannot write " << path << "\n";
+          }
+        }
         const double wall = Since(start);
         const double cpu = ProcessCpuSeconds() - cpu0 - producer.cpu_s();
         checkpoints.push_back(
@@ -645,6 +660,9 @@ int main(int argc, char** argv) {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
       g_tuning.mmap_threshold = std::stoll(value());
+    } else if (a == "--malloc-info") {
+      g_tuning.malloc_info_dir = value();
+      std::filesystem::create_directories(g_tuning.malloc_info_dir);
     } else if (a == "--cv-threads") {
       g_tuning.cv_threads = std::stoi(value());
     } else if (a == "--child") {
@@ -655,7 +673,7 @@ int main(int argc, char** argv) {
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
                    "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES] "
-                   "[--cv-threads N]\n";
+                   "[--cv-threads N] [--malloc-info DIR]\n";
       return 2;
     }
   }
