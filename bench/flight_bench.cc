@@ -114,6 +114,7 @@ struct Tuning {
   int solve_every_frames = -1;
   int registration_threads = -1;
   int heap_trim_interval_frames = -1;
+  int max_cached_tiles = -1;
   int ground_cache_mb = -1;  // The simulator's (the benchmark's input), not the pipeline's.
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
@@ -242,6 +243,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.registration_threads > 0) {
     options.registration_threads = g_tuning.registration_threads;
   }
+  if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
   if (g_tuning.heap_trim_interval_frames >= 0) {
     options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
   }
@@ -398,6 +400,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"solve_every_frames", options.fusion.solve_every_frames},
             {"registration_threads", options.registration_threads},
             {"heap_trim_interval_frames", options.heap_trim_interval_frames},
+            {"max_cached_tiles", options.max_cached_tiles},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
@@ -656,6 +659,8 @@ int main(int argc, char** argv) {
       g_tuning.registration_threads = std::stoi(value());
     } else if (a == "--heap-trim-every") {
       g_tuning.heap_trim_interval_frames = std::stoi(value());
+    } else if (a == "--max-cached-tiles") {
+      g_tuning.max_cached_tiles = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
@@ -672,7 +677,8 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--heap-trim-every N] [--ground-cache-mb N] [--mmap-threshold BYTES] "
+                   "[--heap-trim-every N] [--max-cached-tiles N] [--ground-cache-mb N] "
+                   "[--mmap-threshold BYTES] "
                    "[--cv-threads N] [--malloc-info DIR]\n";
       return 2;
     }

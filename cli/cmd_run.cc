@@ -88,6 +88,10 @@ int RunRun(int argc, char** argv) {
   args.Option("--t0", "time of the first frame of a video or image folder, seconds", "0", "S");
   args.Option("--threads", "OpenCV threads", "2", "N");
   args.Option("--registration-threads", "pairs of a new frame registered at once", "1", "N");
+  args.Option("--max-cached-tiles",
+              "store tiles kept in memory (about 3x this many in use; 768 KiB each at 512 px, "
+              "16 bits)",
+              "64", "N");
   args.Option("--report", "JSON report (default: STORE/run_report.json)", "", "FILE");
   int exit_code = 0;
   if (!args.Parse(argc, argv, &exit_code)) return exit_code;
@@ -119,6 +123,7 @@ int RunRun(int argc, char** argv) {
   options.fusion.optimize = !args.Has("--no-optimize");
   options.planned_extent = !args.Has("--no-planned-extent");
   options.registration_threads = args.GetInt("--registration-threads");
+  options.max_cached_tiles = args.GetInt("--max-cached-tiles");
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
   options.search_radius_px = args.GetDouble("--radius");

@@ -23,6 +23,7 @@
 #include "irmosaic/local_frame.h"
 #include "irmosaic/orthorectify.h"
 #include "irmosaic/registration.h"
+#include "mat_pool.h"
 
 namespace irmosaic {
 namespace {
@@ -253,6 +254,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("registration_threads must be in 1..64");
   }
   if (heap_trim_interval_frames < 0) return fail("heap_trim_interval_frames must be >= 0");
+  if (max_cached_tiles < 1 || max_cached_tiles > 65536) {
+    return fail("max_cached_tiles must be in 1..65536");
+  }
   if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
@@ -393,7 +397,8 @@ class Mosaicker::Impl : public MosaicSink {
     FusionFrame frame;
     frame.index = index;
     frame.time_s = time_s;
-    frame.image = image.clone();
+    frame.image = HeldImageBuffer(image);
+    image.copyTo(frame.image);
     frame.pos_mosaic_from_image = geometry.mosaic_from_image;
     frame.image_clip = geometry.image_clip;
     if (!geometry.image_clip.empty()) {
@@ -734,6 +739,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.tile_size = options_.tile_size;
     store_options.compression = options_.compression;
     store_options.overview_interval_s = options_.overview_interval_s;
+    store_options.max_cached_tiles = static_cast<size_t>(options_.max_cached_tiles);
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
     if (!planned_px_.empty()) opened->SetPlannedBoundsPx(planned_px_);
@@ -812,6 +818,22 @@ class Mosaicker::Impl : public MosaicSink {
       }
     }
     return BuildPosOrtho(frame);
+  }
+
+  // A buffer for the copy of a pushed image the fusion holds: from the pool when the image has
+  // the size and type of the flight's first (those of one camera), otherwise its own.
+  cv::Mat HeldImageBuffer(const cv::Mat& image) {
+    if (!held_pool_) {
+      const FusionOptions& fusion = options_.fusion;
+      const size_t frames =
+          static_cast<size_t>(std::max({fusion.window_frames, fusion.candidate_frames, 1}));
+      // A solve holds its window's images a little longer; a few more for a running one.
+      held_pool_ = std::make_unique<MatPool>(image.rows, image.cols, image.type(), frames + 64);
+    }
+    if (!held_pool_->Fits(image.rows, image.cols, image.type())) {
+      return cv::Mat(image.rows, image.cols, image.type());
+    }
+    return held_pool_->Take();
   }
 
   // A frame's POS orthoimage, built the same way when it is pushed and again when registration
@@ -944,6 +966,9 @@ class Mosaicker::Impl : public MosaicSink {
   std::deque<std::pair<int64_t, std::shared_ptr<const OrthoImage>>> ortho_cache_;
   std::unique_ptr<TileStore> store_;
   std::unique_ptr<MapFusion> fusion_;
+  // Buffers of the images the fusion holds (~window_frames of them, each kept for as many
+  // frames): pooled, not allocated per frame among the frame's short-lived buffers.
+  std::unique_ptr<MatPool> held_pool_;
   bool replay_ = false;
   int64_t last_index_ = -1;
   int64_t resumed_last_index_ = -1;

@@ -134,6 +134,18 @@ TileImage EmptyTile(int tile_size, PixelType type) {
           cv::Mat::zeros(tile_size, tile_size, CV_8U)};
 }
 
+TilePools::TilePools(int tile_size, PixelType type, size_t capacity)
+    : data(tile_size, tile_size, CvDepthOf(type), capacity),
+      alpha(tile_size, tile_size, CV_8U, capacity),
+      half_data(tile_size / 2, tile_size / 2, CvDepthOf(type), capacity),
+      half_alpha(tile_size / 2, tile_size / 2, CV_8U, capacity) {}
+
+TileImage TilePools::Blank() { return {data.Take(), alpha.Take()}; }
+TileImage TilePools::Empty() { return {data.TakeZeros(), alpha.TakeZeros()}; }
+TileImage TilePools::HalfBlank() { return {half_data.Take(), half_alpha.Take()}; }
+
+TileImage EmptyTile(TilePools* pools) { return pools->Empty(); }
+
 std::string TileRelativePath(int level, const TileIndex& tile) {
   return "tiles/" + std::to_string(level) + "/" + std::to_string(tile.first) + "_" +
          std::to_string(tile.second) + ".tif";
@@ -243,7 +255,7 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
   return static_cast<int64_t>(length);
 }
 
-TileImage ReadTile(const fs::path& path, int tile_size, PixelType type) {
+TileImage ReadTile(const fs::path& path, int tile_size, PixelType type, TilePools* pools) {
   GdalErrorCapture capture;
   GDALDatasetH dataset =
       GDALOpenEx(path.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY, nullptr, nullptr, nullptr);
@@ -254,8 +266,9 @@ TileImage ReadTile(const fs::path& path, int tile_size, PixelType type) {
                       (capture.failed() ? capture.message() : std::string("not a store tile")) +
                       ". Fix: restore the file or start a new store (--overwrite)");
   }
-  TileImage tile = EmptyTile(tile_size, type);
-  cv::Mat alpha(tile_size, tile_size, CvDepthOf(type));
+  // GDAL fills every sample; the alpha band comes in the data type, then becomes 0/255.
+  TileImage tile = pools ? pools->Blank() : EmptyTile(tile_size, type);
+  cv::Mat alpha = pools ? pools->data.Take() : cv::Mat(tile_size, tile_size, CvDepthOf(type));
   const GDALDataType gdal_type = GdalTypeOf(type);
   CPLErr status = GDALRasterIO(GDALGetRasterBand(dataset, 1), GF_Read, 0, 0, tile_size, tile_size,
                                tile.data.ptr(), tile_size, tile_size, gdal_type, 0,
@@ -270,7 +283,7 @@ TileImage ReadTile(const fs::path& path, int tile_size, PixelType type) {
     throw OutputError("cannot read tile " + path.string() + ": " + capture.message() +
                       ". Fix: restore the file or start a new store (--overwrite)");
   }
-  tile.alpha = alpha > 0;
+  cv::compare(alpha, 0, tile.alpha, cv::CMP_GT);  // Into tile.alpha's own buffer.
   return tile;
 }
 
@@ -280,9 +293,11 @@ namespace {
 // four samples of up to 16 bits are exact in float, so sum / count rounds the same way), in one
 // pass instead of nine over float images of the tile's size. Coverage is 0 or 255 in a store.
 template <typename T>
-TileImage HalveIntegerTile(const TileImage& tile) {
+TileImage HalveIntegerTile(const TileImage& tile, TilePools* pools) {
   const int w = tile.data.cols / 2, h = tile.data.rows / 2;
-  TileImage out{cv::Mat(h, w, tile.data.type()), cv::Mat(h, w, CV_8U)};
+  TileImage out = pools && pools->half_data.Fits(h, w, tile.data.type())
+                      ? pools->HalfBlank()
+                      : TileImage{cv::Mat(h, w, tile.data.type()), cv::Mat(h, w, CV_8U)};
   for (int y = 0; y < h; ++y) {
     const T* v0 = tile.data.ptr<T>(2 * y);
     const T* v1 = tile.data.ptr<T>(2 * y + 1);
@@ -306,9 +321,9 @@ TileImage HalveIntegerTile(const TileImage& tile) {
 
 }  // namespace
 
-TileImage HalveTile(const TileImage& tile) {
-  if (tile.data.depth() == CV_16U) return HalveIntegerTile<uint16_t>(tile);
-  if (tile.data.depth() == CV_8U) return HalveIntegerTile<uint8_t>(tile);
+TileImage HalveTile(const TileImage& tile, TilePools* pools) {
+  if (tile.data.depth() == CV_16U) return HalveIntegerTile<uint16_t>(tile, pools);
+  if (tile.data.depth() == CV_8U) return HalveIntegerTile<uint8_t>(tile, pools);
   cv::Mat covered, values, sum_values, sum_covered;
   tile.alpha.convertTo(covered, CV_32F, 1.0 / 255.0);
   tile.data.convertTo(values, CV_32F);

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "irmosaic/tile_store.h"
+#include "mat_pool.h"
 
 namespace irmosaic::store {
 
@@ -40,6 +41,19 @@ PixelType PixelTypeFromName(const std::string& name);  // Throws Error on an unk
 
 TileImage EmptyTile(int tile_size, PixelType type);
 
+// Buffers for the tiles of one store (full size, and halved for the next level): a store makes
+// and drops tiles all flight (cache, writer, overviews), so they come from pools (mat_pool.h)
+// instead of the heap. Up to `capacity` tiles of each size are pooled.
+struct TilePools {
+  TilePools(int tile_size, PixelType type, size_t capacity);
+  TileImage Blank();      // Full size, contents undefined.
+  TileImage Empty();      // Full size, zeros (uncovered).
+  TileImage HalfBlank();  // Half size, contents undefined.
+  MatPool data, alpha, half_data, half_alpha;
+};
+// With pools, EmptyTile, ReadTile and HalveTile take their buffers from them.
+TileImage EmptyTile(TilePools* pools);
+
 // Path of tile (row, col) of `level`, relative to the store: tiles/<level>/<row>_<col>.tif.
 std::string TileRelativePath(int level, const TileIndex& tile);
 // GDAL geotransform of a tile of `level` (pixel size gsd * 2^level).
@@ -58,7 +72,8 @@ struct TileWriteSettings {
 int64_t WriteTileAtomic(const std::filesystem::path& path, const TileImage& tile,
                         const double gt[6], const TileWriteSettings& settings);
 // Reads a tile written by WriteTileAtomic. Throws OutputError if unreadable or of another shape.
-TileImage ReadTile(const std::filesystem::path& path, int tile_size, PixelType type);
+TileImage ReadTile(const std::filesystem::path& path, int tile_size, PixelType type,
+                   TilePools* pools = nullptr);
 
 // Writes `content` to path through a temporary name and a rename. Throws OutputError.
 void WriteFileAtomic(const std::filesystem::path& path, const std::string& content, bool durable);
@@ -66,7 +81,7 @@ void WriteFileAtomic(const std::filesystem::path& path, const std::string& conte
 bool IsTemporaryName(const std::string& filename);
 
 // Halves a tile (2x2 coverage-weighted mean); result is tile_size/2 square.
-TileImage HalveTile(const TileImage& tile);
+TileImage HalveTile(const TileImage& tile, TilePools* pools = nullptr);
 
 // The published index of a store: what manifest.json holds.
 struct Manifest {

@@ -144,8 +144,10 @@ bool BlendEight(const uint16_t* src, const float* w, uint16_t* dst, uchar* cover
 }
 #endif
 
-// Whether another cv::Mat holds `m`'s buffer too.
-bool SharedBuffer(const cv::Mat& m) { return m.u != nullptr && m.u->refcount > 1; }
+// Whether someone besides the cache holds `m` (a pooled buffer has the pool's reference too).
+bool SharedBuffer(const cv::Mat& m, const MatPool& pool) {
+  return m.u != nullptr && m.u->refcount > (pool.Owns(m) ? 2 : 1);
+}
 
 // Whether BlendInto would look at any sample of `roi`: a weight above zero (NaN is not). Paint
 // asks before it touches a tile, so a tile the patch's bounding box reaches but its footprint
@@ -231,10 +233,25 @@ struct TileStore::Impl {
     uint64_t last_use = 0;
   };
   std::map<TileIndex, CachedTile> cache;
+  // Tile buffers (mat_pool.h), made at first use when the tile size and type are settled:
+  // the cache, the painters' copies, the writer's backlog and halves, the overview cache.
+  std::once_flag pools_made;
+  std::unique_ptr<store::TilePools> pools;
+  store::TilePools& Pools() {
+    std::call_once(pools_made, [this] {
+      pools = std::make_unique<store::TilePools>(options.tile_size, type,
+                                                 6 * options.max_cached_tiles + 32);
+    });
+    return *pools;
+  }
   size_t dirty_count = 0;
   uint64_t use_clock = 0;
   TileSet level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
   std::map<int64_t, FrameRecord> frames;
+  // Time range of `frames`, kept as records come (a publish no longer walks every record of
+  // the flight under the lock: ~90,000 in an hour); stale: recomputed at the next publish.
+  std::pair<double, double> frames_time{0.0, 0.0};
+  bool frames_time_stale = true;
   std::vector<FrameRecord> frames_changed;
   std::string application_json;
   bool application_dirty = false;
@@ -325,14 +342,14 @@ TileStore::Impl::CachedTile& TileStore::Impl::TileLocked(const TileIndex& index,
     if (level0_on_disk.count(index)) {
       // Reload outside the lock so the writer is not held up by this read.
       lock.unlock();
-      TileImage image = store::ReadTile(PathOf(0, index), options.tile_size, type);
+      TileImage image = store::ReadTile(PathOf(0, index), options.tile_size, type, &Pools());
       lock.lock();
       ++stats.tile_reloads;
       it = cache.find(index);  // Another painter may have loaded it meanwhile.
       if (it != cache.end()) return it->second;
       tile.image = std::move(image);
     } else {
-      tile.image = store::EmptyTile(options.tile_size, type);
+      tile.image = store::EmptyTile(&Pools());
     }
     it = cache.emplace(index, std::move(tile)).first;
   }
@@ -381,9 +398,9 @@ TileImage TileStore::Impl::OverviewTile(int level, const TileIndex& tile) {
   const fs::path path = PathOf(level, tile);
   if (fs::exists(path)) {
     ++overview_reads;
-    return store::ReadTile(path, options.tile_size, type);
+    return store::ReadTile(path, options.tile_size, type, &Pools());
   }
-  return store::EmptyTile(options.tile_size, type);
+  return store::EmptyTile(&Pools());
 }
 
 std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
@@ -511,14 +528,18 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   if (secondary) frames_to_write.swap(frames_changed);
   secondary_owed = !secondary;
   int64_t frame_count = static_cast<int64_t>(frames.size());
-  double time_min = 0.0, time_max = 0.0;
-  if (!frames.empty()) {
-    time_min = time_max = frames.begin()->second.time_s;
+  if (frames_time_stale) {  // Records loaded at open, or one replaced with another time.
+    frames_time_stale = false;
+    frames_time = {0.0, 0.0};
+    bool first = true;
     for (const auto& [index, record] : frames) {
-      time_min = std::min(time_min, record.time_s);
-      time_max = std::max(time_max, record.time_s);
+      frames_time = first ? std::make_pair(record.time_s, record.time_s)
+                          : std::make_pair(std::min(frames_time.first, record.time_s),
+                                           std::max(frames_time.second, record.time_s));
+      first = false;
     }
   }
+  const double time_min = frames_time.first, time_max = frames_time.second;
   const std::string application = application_json;
   const auto planned = planned_bounds_px;
   application_dirty = false;
@@ -552,11 +573,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     // next overview update at a quarter of its size.
     std::map<TileIndex, TileImage> halves;
     if (!secondary) {
-      for (const auto& [index, image] : level0) overview_owed[index] = store::HalveTile(image);
+      for (const auto& [index, image] : level0) {
+        overview_owed[index] = store::HalveTile(image, &Pools());
+      }
     } else {
       halves.swap(overview_owed);
       for (const auto& [index, image] : halves) snapshot.push_back(index);  // Owed on failure.
-      for (const auto& [index, image] : level0) halves[index] = store::HalveTile(image);
+      for (const auto& [index, image] : level0) halves[index] = store::HalveTile(image, &Pools());
     }
     // The display range below reads the top level's tiles; with no overview level, these. The
     // references to the painters' buffers change hands under the lock (Paint reads the count).
@@ -570,8 +593,8 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     // Tiles written by a failed publish still owe their overviews.
     for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
       if (!halves.count(index)) {
-        halves[index] =
-            store::HalveTile(store::ReadTile(PathOf(0, index), options.tile_size, type));
+        halves[index] = store::HalveTile(
+            store::ReadTile(PathOf(0, index), options.tile_size, type, &Pools()), &Pools());
       }
     }
     // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
@@ -587,8 +610,9 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
         for (const TileIndex& tile : next.levels[level - 1]) {
           if (!children.count(tile)) {
             children[tile] = store::HalveTile(
-                level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type)
-                           : OverviewTile(level - 1, tile));
+                level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type, &Pools())
+                           : OverviewTile(level - 1, tile),
+                &Pools());
           }
         }
       }
@@ -596,7 +620,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       children.clear();
       for (const auto& [index, image] : parents) {
         next.levels[level].insert(index);
-        if (level < levels) children[index] = store::HalveTile(image);
+        if (level < levels) children[index] = store::HalveTile(image, &Pools());
       }
     }
     overview_written = tiles_written - level0_written;
@@ -901,9 +925,14 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
       Impl::CachedTile& tile = s.TileLocked({row, col}, lock);
       if (tile.shared) {
         // Every reference the writer takes or drops is taken or dropped under this lock, so the
-        // count is current: one (the cache's own) once the writer let go.
-        if (SharedBuffer(tile.image.data) || SharedBuffer(tile.image.alpha)) {
-          tile.image = {tile.image.data.clone(), tile.image.alpha.clone()};
+        // count is current: one (the cache's own, plus the pool's) once the writer let go.
+        store::TilePools& pools = s.Pools();
+        if (SharedBuffer(tile.image.data, pools.data) ||
+            SharedBuffer(tile.image.alpha, pools.alpha)) {
+          store::TileImage copy = pools.Blank();
+          tile.image.data.copyTo(copy.data);
+          tile.image.alpha.copyTo(copy.alpha);
+          tile.image = std::move(copy);
           ++s.stats.tile_copies;
         }
         tile.shared = false;
@@ -952,7 +981,17 @@ void TileStore::PutFrameRecord(const FrameRecord& record) {
                      "number frames from 0");
   }
   std::lock_guard<std::mutex> lock(s.mutex);
-  s.frames[record.index] = record;
+  auto [it, inserted] = s.frames.try_emplace(record.index, record);
+  if (!inserted) {
+    if (it->second.time_s != record.time_s) s.frames_time_stale = true;
+    it->second = record;
+  }
+  if (!s.frames_time_stale) {
+    s.frames_time = s.frames.size() == 1
+                        ? std::make_pair(record.time_s, record.time_s)
+                        : std::make_pair(std::min(s.frames_time.first, record.time_s),
+                                         std::max(s.frames_time.second, record.time_s));
+  }
   s.frames_changed.push_back(record);
 }
 

@@ -185,6 +185,7 @@ TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
       {"search_radius_px", [](MosaickerOptions* o) { o->search_radius_px = 2.0; }},
       {"publish_interval_s", [](MosaickerOptions* o) { o->publish_interval_s = 0.0; }},
       {"heap_trim_interval_frames", [](MosaickerOptions* o) { o->heap_trim_interval_frames = -1; }},
+      {"max_cached_tiles", [](MosaickerOptions* o) { o->max_cached_tiles = 0; }},
       {"max_range_m", [](MosaickerOptions* o) { o->max_range_m = std::nan(""); }},
       {"pos_position_sigma_m", [](MosaickerOptions* o) { o->pos_position_sigma_m = 0.0; }},
       {"fusion", [](MosaickerOptions* o) { o->fusion.window_frames = -5; }},

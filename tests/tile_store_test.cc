@@ -25,6 +25,7 @@
 #include <random>
 #include <set>
 #include <thread>
+#include <tuple>
 
 #include "../src/store_internal.h"
 #include "irmosaic/error.h"
@@ -462,6 +463,50 @@ TEST(TileStoreTest, FramesGpkgHoldsFootprintsInTheMosaicCrs) {
   const nlohmann::json manifest = nlohmann::json::parse(in);
   EXPECT_EQ(manifest["frames"]["count"], 30);
   EXPECT_DOUBLE_EQ(manifest["frames"]["time_max_s"].get<double>(), 0.04 * 29);
+}
+
+// manifest.json's frames.time_min_s / time_max_s follow the records: kept up to date as records
+// come (not recomputed over the whole flight at each publish), redone when a record is replaced
+// with another time, and taken from frames.gpkg on a resume.
+TEST(TileStoreTest, ManifestTimeRangeFollowsTheRecordsAcrossReplacementAndResume) {
+  const fs::path dir = FreshDir("time_range") / "s.irmosaic";
+  auto range = [&dir] {
+    std::ifstream in(dir / "manifest.json");
+    const nlohmann::json frames = nlohmann::json::parse(in)["frames"];
+    return std::make_tuple(frames["count"].get<int64_t>(), frames["time_min_s"].get<double>(),
+                           frames["time_max_s"].get<double>());
+  };
+  auto record = [](int64_t index, double time_s) {
+    FrameRecord r;
+    r.index = index;
+    r.time_s = time_s;
+    r.footprint_m = {Eigen::Vector2d(0, 0), {10, 0}, {10, -10}, {0, -10}};
+    r.status = "registered";
+    return r;
+  };
+  {
+    TileStoreOptions options = Options(dir);
+    options.overview_interval_s = 0.0;  // frames.gpkg with every publish.
+    auto store = TileStore::Open(options, Georef());
+    for (int i = 0; i < 5; ++i) store->PutFrameRecord(record(i, 10.0 + i));
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(range(), std::make_tuple(int64_t{5}, 10.0, 14.0));
+    store->PutFrameRecord(record(7, 9.5));  // Extends it downwards.
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(range(), std::make_tuple(int64_t{6}, 9.5, 14.0));
+    store->PutFrameRecord(record(7, 12.0));  // The earliest record moves: the range shrinks.
+    store->PutFrameRecord(record(4, 11.0));  // So does the latest.
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(range(), std::make_tuple(int64_t{6}, 10.0, 13.0));
+    store->Close();
+  }
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  auto store = TileStore::Open(resume, Georef());
+  store->PutFrameRecord(record(8, 20.0));
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(range(), std::make_tuple(int64_t{7}, 10.0, 20.0));
+  store->Close();
 }
 
 // Bytes this process has passed to write(2) and its kin so far, all threads (/proc/self/io).

@@ -56,6 +56,11 @@ struct MosaickerOptions {
   // memory the heap otherwise holds on to and grows over a long flight: docs/benchmarks.md,
   // "Session 8"). 0: never. The call is process-wide.
   int heap_trim_interval_frames = 250;
+  // The store's memory bound (TileStoreOptions::max_cached_tiles): clean level-0 tiles kept in
+  // memory, and twice as many may wait for the writer before painting waits. Each tile is
+  // tile_size^2 x (sample size + 1) bytes (768 KiB at 512 and 16 bits); fewer means more tiles
+  // read back from disk (docs/benchmarks.md, "Session 12").
+  int max_cached_tiles = 64;
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.
