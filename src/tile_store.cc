@@ -14,6 +14,7 @@
 #include <condition_variable>
 #include <cstring>
 #include <ctime>
+#include <limits>
 #include <list>
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
@@ -250,8 +251,12 @@ struct TileStore::Impl {
   std::map<int64_t, FrameRecord> frames;
   // Time range of `frames`, kept as records come (a publish no longer walks every record of
   // the flight under the lock: ~90,000 in an hour); stale: recomputed at the next publish.
-  std::pair<double, double> frames_time{0.0, 0.0};
+  std::pair<double, double> frames_time{kNoTime, -kNoTime};
   bool frames_time_stale = true;
+  static constexpr double kNoTime = std::numeric_limits<double>::infinity();
+  void WidenFramesTime(double time_s) {
+    frames_time = {std::min(frames_time.first, time_s), std::max(frames_time.second, time_s)};
+  }
   std::vector<FrameRecord> frames_changed;
   std::string application_json;
   bool application_dirty = false;
@@ -530,16 +535,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   int64_t frame_count = static_cast<int64_t>(frames.size());
   if (frames_time_stale) {  // Records loaded at open, or one replaced with another time.
     frames_time_stale = false;
-    frames_time = {0.0, 0.0};
-    bool first = true;
-    for (const auto& [index, record] : frames) {
-      frames_time = first ? std::make_pair(record.time_s, record.time_s)
-                          : std::make_pair(std::min(frames_time.first, record.time_s),
-                                           std::max(frames_time.second, record.time_s));
-      first = false;
-    }
+    frames_time = {kNoTime, -kNoTime};
+    for (const auto& [index, record] : frames) WidenFramesTime(record.time_s);
   }
-  const double time_min = frames_time.first, time_max = frames_time.second;
+  const double time_min = frames.empty() ? 0.0 : frames_time.first;
+  const double time_max = frames.empty() ? 0.0 : frames_time.second;
   const std::string application = application_json;
   const auto planned = planned_bounds_px;
   application_dirty = false;
@@ -986,12 +986,7 @@ void TileStore::PutFrameRecord(const FrameRecord& record) {
     if (it->second.time_s != record.time_s) s.frames_time_stale = true;
     it->second = record;
   }
-  if (!s.frames_time_stale) {
-    s.frames_time = s.frames.size() == 1
-                        ? std::make_pair(record.time_s, record.time_s)
-                        : std::make_pair(std::min(s.frames_time.first, record.time_s),
-                                         std::max(s.frames_time.second, record.time_s));
-  }
+  if (!s.frames_time_stale) s.WidenFramesTime(record.time_s);
   s.frames_changed.push_back(record);
 }
 
