@@ -115,7 +115,8 @@ struct Tuning {
   int registration_threads = -1;
   int heap_trim_interval_frames = -1;
   int max_cached_tiles = -1;
-  int ground_cache_mb = -1;  // The simulator's (the benchmark's input), not the pipeline's.
+  int images_in_memory = -1;  // -1: the library's default.
+  int ground_cache_mb = -1;   // The simulator's (the benchmark's input), not the pipeline's.
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
   // not adopted: docs/benchmarks.md.
@@ -244,6 +245,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.registration_threads = g_tuning.registration_threads;
   }
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
+  if (g_tuning.images_in_memory >= 0) options.images_in_memory = g_tuning.images_in_memory;
   if (g_tuning.heap_trim_interval_frames >= 0) {
     options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
   }
@@ -387,6 +389,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"oldest_neighbour_frames", oldest_neighbour},
             {"held_images", s.fusion.held_images},
             {"held_image_mib", static_cast<double>(s.fusion.held_image_bytes) / 1048576.0},
+            {"images_in_memory", options.images_in_memory},
+            {"spilled_images", s.fusion.spilled_images},
+            {"spill_file_mib", static_cast<double>(s.fusion.spill_file_bytes) / 1048576.0},
+            {"spill_reads", s.fusion.spill_reads},
+            {"spill_error", s.fusion.spill_error},
             {"rss_start_mib", rss_start},
             {"placement_mean_px", score.rmse_px.mean},
             {"placement_p95_px", score.rmse_px.p95},
@@ -661,6 +668,8 @@ int main(int argc, char** argv) {
       g_tuning.heap_trim_interval_frames = std::stoi(value());
     } else if (a == "--max-cached-tiles") {
       g_tuning.max_cached_tiles = std::stoi(value());
+    } else if (a == "--images-in-memory") {
+      g_tuning.images_in_memory = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
@@ -677,7 +686,8 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] "
-                   "[--heap-trim-every N] [--max-cached-tiles N] [--ground-cache-mb N] "
+                   "[--heap-trim-every N] [--max-cached-tiles N] [--images-in-memory N] "
+                   "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
                    "[--cv-threads N] [--malloc-info DIR]\n";
       return 2;
@@ -774,7 +784,13 @@ int main(int argc, char** argv) {
               << Fixed(f["placement_mean_px"], 3) << " px, p95 " << Fixed(f["placement_p95_px"], 3)
               << ", max " << Fixed(f["placement_max_px"], 3) << "\nfusion: images held at the end "
               << f["held_images"].get<int64_t>() << " (" << Fixed(f["held_image_mib"], 0)
-              << " MiB), oldest neighbour registered to " << f["oldest_neighbour_frames"]
+              << " MiB in memory), " << f["spilled_images"].get<int64_t>() << " on disk (file "
+              << Fixed(f["spill_file_mib"], 0) << " MiB, " << f["spill_reads"].get<int64_t>()
+              << " read back"
+              << (f["spill_error"].get<std::string>().empty()
+                      ? std::string()
+                      : "; " + f["spill_error"].get<std::string>())
+              << "), oldest neighbour registered to " << f["oldest_neighbour_frames"]
               << " frames back\n";
   }
 

@@ -92,6 +92,10 @@ int RunRun(int argc, char** argv) {
               "store tiles kept in memory (about 3x this many in use; 768 KiB each at 512 px, "
               "16 bits)",
               "64", "N");
+  args.Option("--images-in-memory",
+              "frame images kept in memory; older ones the optimizer may re-render wait in an "
+              "unnamed file in the store folder (0: all in memory)",
+              "32", "N");
   args.Option("--report", "JSON report (default: STORE/run_report.json)", "", "FILE");
   int exit_code = 0;
   if (!args.Parse(argc, argv, &exit_code)) return exit_code;
@@ -124,6 +128,7 @@ int RunRun(int argc, char** argv) {
   options.planned_extent = !args.Has("--no-planned-extent");
   options.registration_threads = args.GetInt("--registration-threads");
   options.max_cached_tiles = args.GetInt("--max-cached-tiles");
+  options.images_in_memory = args.GetInt("--images-in-memory");
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
   options.search_radius_px = args.GetDouble("--radius");
@@ -207,12 +212,22 @@ int RunRun(int argc, char** argv) {
         {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
         {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},
+      {"held_images",
+       {{"in_memory_limit", options.images_in_memory},
+        {"file_mib", static_cast<double>(s.fusion.spill_file_bytes) / 1048576.0},
+        {"read_back", s.fusion.spill_reads},
+        {"file_error", s.fusion.spill_error}}},
       {"placements", placements_path}};
   const std::string report_path =
       args.Get("--report").empty()
           ? (std::filesystem::path(options.store_path) / "run_report.json").string()
           : args.Get("--report");
   std::ofstream(report_path) << report.dump(2) << "\n";
+  if (!s.fusion.spill_error.empty()) {
+    std::cerr << "irmosaic run: warning: frame images were kept in memory instead of the store "
+                 "folder: "
+              << s.fusion.spill_error << ". Fix: free disk space there, or --images-in-memory 0\n";
+  }
   if (s.frames_placed == 0) {
     std::cerr << "irmosaic run: error: no frame could be placed (see the warnings above)\n";
     return 1;

@@ -340,6 +340,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("registration_threads", &MosaickerOptions::registration_threads)
       .def_readwrite("heap_trim_interval_frames", &MosaickerOptions::heap_trim_interval_frames)
       .def_readwrite("max_cached_tiles", &MosaickerOptions::max_cached_tiles)
+      .def_readwrite("images_in_memory", &MosaickerOptions::images_in_memory)
       .def_readwrite("fusion", &MosaickerOptions::fusion)
       .def("validate", [](const MosaickerOptions& o) {
         std::string error;

@@ -13,6 +13,7 @@
 #include <cstring>
 #include <deque>
 #include <exception>
+#include <filesystem>
 #include <future>
 #include <map>
 #include <mutex>
@@ -24,6 +25,7 @@
 
 #include "buffer_view.h"
 #include "fusion_cost.h"
+#include "image_spill.h"
 #include "irmosaic/frame_geometry.h"
 
 namespace irmosaic {
@@ -83,6 +85,7 @@ bool FusionOptions::IsValid(std::string* error) const {
   };
   if (window_frames < 2) return fail("window_frames must be at least 2");
   if (candidate_frames < 0) return fail("candidate_frames must be >= 0 (0: window_frames)");
+  if (images_in_memory < 0) return fail("images_in_memory must be >= 0 (0: all)");
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
   if (max_neighbours < 1) return fail("max_neighbours must be at least 1");
   if (registration_threads < 1 || registration_threads > 64) {
@@ -130,6 +133,14 @@ class MapFusion::Impl {
     if (!options_.IsValid(&error)) throw std::invalid_argument("FusionOptions: " + error);
     normalizer_ = {(camera_.width - 1) / 2.0, (camera_.height - 1) / 2.0,
                    std::max(camera_.width, camera_.height) / 2.0};
+    if (options_.images_in_memory > 0) {
+      std::string directory = options_.spill_directory;
+      if (directory.empty()) {
+        std::error_code ignored;
+        directory = std::filesystem::temp_directory_path(ignored).string();
+      }
+      spill_ = std::make_unique<ImageSpill>(directory);
+    }
     if (options_.optimize) optimizer_ = std::thread([this] { OptimizerLoop(); });
   }
 
@@ -187,7 +198,10 @@ class MapFusion::Impl {
     std::vector<Eigen::Vector2d> template_pts, mosaic_pts;
     std::vector<std::pair<double, double>> radiometric;  // (value in new frame, target value).
     std::vector<Pair> new_pairs;
-    std::vector<PairMatch> matches = RegisterPairs(scored, frame->data);
+    // Neighbours whose image is on disk (images_in_memory) are read back for the pair.
+    std::vector<cv::Mat> base_images(scored.size());
+    for (size_t k = 0; k < scored.size(); ++k) base_images[k] = ImageOf(*scored[k].second);
+    std::vector<PairMatch> matches = RegisterPairs(scored, base_images, frame->data);
     for (size_t k = 0; k < scored.size(); ++k) {
       const std::shared_ptr<Held>& neighbour = scored[k].second;
       PairMatch match = std::move(matches[k]);
@@ -198,7 +212,7 @@ class MapFusion::Impl {
         continue;
       }
       ++pairs_ok_;
-      Pair pair = MakePair(neighbour, frame, std::move(match));
+      Pair pair = MakePair(neighbour, base_images[k], frame, std::move(match));
       Eigen::Matrix3d h_base;
       double gain_base = 1.0, offset_base = 0.0;
       {
@@ -284,6 +298,7 @@ class MapFusion::Impl {
     Render(frame->data.image, frame->data.image_clip, placement, &foreground_);
     if (sink_) sink_->FramePlaced(placement);
     if (options_.optimize) cv_.notify_one();
+    SpillImages();
     return placement;
   }
 
@@ -369,10 +384,16 @@ class MapFusion::Impl {
     s.optimizer_lag_frames = frames_since_solve_;
     s.held_frames = static_cast<int64_t>(window_.size());
     for (const auto& f : window_) {
+      if (f->spilled) ++s.spilled_images;
       if (f->data.image.empty()) continue;
       ++s.held_images;
       s.held_image_bytes += static_cast<int64_t>(f->data.image.total() * f->data.image.elemSize());
     }
+    if (spill_) {
+      s.spill_file_bytes = static_cast<int64_t>(spill_->slots() * spill_->bytes_per_image());
+      s.spill_error = spill_->error();
+    }
+    s.spill_reads = spill_reads_;
     return s;
   }
 
@@ -383,6 +404,14 @@ class MapFusion::Impl {
     size_t slot = 0;
     std::vector<cv::Point2f> pos_footprint;
     FramePlacement rendered;  // As last painted (under mu_): re-renders compare with it.
+    // The image on disk instead of in data.image (images_in_memory); written by the producer
+    // under mu_.
+    std::shared_ptr<const ImageSpill::Handle> spilled;
+  };
+  // A frame's image as a solve keeps it for its re-renders: in memory or on disk.
+  struct ImageRef {
+    cv::Mat image;
+    std::shared_ptr<const ImageSpill::Handle> spilled;
   };
   struct Pair {
     std::shared_ptr<Held> base, templ;
@@ -408,16 +437,54 @@ class MapFusion::Impl {
     const size_t count = std::max(CandidateCount(), static_cast<size_t>(options_.window_frames));
     for (size_t k = 0; k + count < window_.size(); ++k) {
       Held& f = *window_[k];
-      if (f.data.image.empty()) continue;
+      if (f.data.image.empty() && !f.spilled) continue;
       if (options_.optimize && placements_[f.slot].optimized_times == 0) continue;
       f.data.image.release();
+      f.spilled.reset();
     }
+  }
+
+  // Moves the images of held frames older than the newest images_in_memory to the spill file
+  // (producer thread; the writes run outside mu_). An image the file refuses (disk full) stays
+  // in memory.
+  void SpillImages() {
+    if (!spill_) return;
+    std::vector<std::shared_ptr<Held>> older;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      const size_t keep = static_cast<size_t>(options_.images_in_memory);
+      for (size_t k = 0; k + keep < window_.size(); ++k) {
+        if (!window_[k]->data.image.empty() && !window_[k]->spilled) older.push_back(window_[k]);
+      }
+    }
+    for (const std::shared_ptr<Held>& f : older) {
+      std::shared_ptr<const ImageSpill::Handle> handle = spill_->Put(f->data.image);
+      if (!handle) continue;
+      std::lock_guard<std::mutex> lock(mu_);
+      f->spilled = std::move(handle);
+      f->data.image.release();
+    }
+  }
+
+  // The image of a frame, read back from disk when it is there (empty when the read fails or
+  // the frame holds none). Producer thread (the only writer of data.image and spilled).
+  cv::Mat ImageOf(const Held& f) {
+    if (!f.data.image.empty() || !f.spilled) return f.data.image;
+    return ReadBack(*f.spilled);
+  }
+  cv::Mat ImageOf(const ImageRef& ref) {
+    if (!ref.image.empty() || !ref.spilled) return ref.image;
+    return ReadBack(*ref.spilled);
+  }
+  cv::Mat ReadBack(const ImageSpill::Handle& handle) {
+    ++spill_reads_;
+    return spill_->Get(handle);
   }
 
   // A registered pair as the optimizer keeps it: at most max_ties_per_pair ties, with the
   // patch means at both ends for the radiometric ties (NaN where a patch leaves the image).
-  Pair MakePair(const std::shared_ptr<Held>& base, const std::shared_ptr<Held>& templ,
-                PairMatch match) const {
+  Pair MakePair(const std::shared_ptr<Held>& base, const cv::Mat& base_image,
+                const std::shared_ptr<Held>& templ, PairMatch match) const {
     SubsampleTies(&match);
     Pair pair;
     pair.base = base;
@@ -427,7 +494,7 @@ class MapFusion::Impl {
     pair.tie_sigma_px = std::max(options_.tie_sigma_px, match.tie_sigma_px);
     for (size_t t = 0; t < pair.base_points.size(); ++t) {
       pair.base_values.push_back(
-          PatchMean(base->data.image, camera_, pair.base_points[t], options_.tie_patch_radius_px));
+          PatchMean(base_image, camera_, pair.base_points[t], options_.tie_patch_radius_px));
       pair.template_values.push_back(PatchMean(templ->data.image, camera_, pair.template_points[t],
                                                options_.tie_patch_radius_px));
     }
@@ -463,7 +530,8 @@ class MapFusion::Impl {
         continue;
       }
       ++pairs_ok_;
-      new_pairs.push_back(MakePair(base->second, frame, std::move(match)));
+      new_pairs.push_back(
+          MakePair(base->second, base->second->data.image, frame, std::move(match)));
       *new_pairs.back().weight = it->second.weight;
     }
     replay_held_[index] = frame;
@@ -554,23 +622,36 @@ class MapFusion::Impl {
   // Registers `templ` to each scored neighbour; up to registration_threads pairs at once (the
   // calling thread takes its share). Results in the order of `scored`; an exception of any
   // pair is rethrown here, after every pair has finished.
+  // Registers templ to each scored neighbour; base_images[k] is neighbour k's image (read back
+  // when it is on disk; empty when that failed).
   std::vector<PairMatch> RegisterPairs(
       const std::vector<std::pair<double, std::shared_ptr<Held>>>& scored,
-      const FusionFrame& templ) {
+      const std::vector<cv::Mat>& base_images, const FusionFrame& templ) {
     std::vector<PairMatch> matches(scored.size());
+    auto one = [&](size_t k) {
+      const FusionFrame& base = scored[k].second->data;
+      if (base_images[k].empty()) {
+        matches[k].reason = "its image could not be read back from disk (" +
+                            (spill_ ? spill_->error() : std::string("none held")) + ")";
+        return;
+      }
+      if (base.image.data == base_images[k].data) {
+        matches[k] = registrar_(base, templ);
+        return;
+      }
+      FusionFrame loaded = base;  // Without pixels (they are on disk): a copy with them.
+      loaded.image = base_images[k];
+      matches[k] = registrar_(loaded, templ);
+    };
     const size_t threads =
         std::min(scored.size(), static_cast<size_t>(options_.registration_threads));
     if (threads <= 1) {
-      for (size_t k = 0; k < scored.size(); ++k) {
-        matches[k] = registrar_(scored[k].second->data, templ);
-      }
+      for (size_t k = 0; k < scored.size(); ++k) one(k);
       return matches;
     }
     std::atomic<size_t> next{0};
     auto work = [&] {
-      for (size_t k = next++; k < scored.size(); k = next++) {
-        matches[k] = registrar_(scored[k].second->data, templ);
-      }
+      for (size_t k = next++; k < scored.size(); k = next++) one(k);
     };
     std::vector<std::future<void>> helpers;
     for (size_t t = 1; t < threads; ++t) helpers.push_back(std::async(std::launch::async, work));
@@ -715,7 +796,7 @@ class MapFusion::Impl {
     const auto start = Clock::now();
     const double start_cpu_ms = ThreadCpuMs();
     std::vector<std::shared_ptr<Held>> frames;
-    std::map<size_t, cv::Mat> images;  // slot -> the frame's image, for the re-renders
+    std::map<size_t, ImageRef> images;  // slot -> the frame's image, for the re-renders
     std::vector<Pair> pairs;
     std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
     std::map<size_t, Eigen::Matrix<double, 10, 10>> prior_info;
@@ -752,7 +833,7 @@ class MapFusion::Impl {
       for (const auto& f : frames) {
         current[f->slot] = placements_[f->slot];
         prior_info[f->slot] = f->prior_sqrt_information;
-        images[f->slot] = f->data.image;
+        images[f->slot] = {f->data.image, f->spilled};
       }
       frames_since_solve_ = 0;
     }
@@ -978,7 +1059,8 @@ class MapFusion::Impl {
     }
     Renderer* renderer = final_solve || last_slot != SIZE_MAX ? &foreground_ : &background_;
     for (const auto& [frame, placement] : moved) {
-      Render(images[frame->slot], frame->data.image_clip, placement, renderer);
+      const cv::Mat image = ImageOf(images[frame->slot]);
+      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer);
       if (sink_) sink_->FramePlaced(placement);
     }
   }
@@ -1143,6 +1225,10 @@ class MapFusion::Impl {
   std::map<int64_t, size_t> replay_slots_;                        // Replayed frame -> its slot.
   std::multimap<int64_t, FusionResumeState::Pair> replay_pairs_;  // Template -> its pairs.
   std::map<int64_t, std::shared_ptr<Held>> replay_held_;          // Frames pushed again.
+
+  // Held images on disk (FusionOptions::images_in_memory > 0), and how many were read back.
+  std::unique_ptr<ImageSpill> spill_;
+  std::atomic<int64_t> spill_reads_{0};
 };
 
 int64_t FusionResumeState::ReplayFrom() const {

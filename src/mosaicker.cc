@@ -257,6 +257,7 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (max_cached_tiles < 1 || max_cached_tiles > 65536) {
     return fail("max_cached_tiles must be in 1..65536");
   }
+  if (images_in_memory < 0) return fail("images_in_memory must be >= 0 (0: all in memory)");
   if (!(overview_interval_s >= 0.0)) return fail("overview_interval_s must be >= 0");
   if (!(max_range_m > 0.0)) return fail("max_range_m must be positive");
   if (std::isnan(origin_lat_deg) != std::isnan(origin_lon_deg)) {
@@ -327,6 +328,8 @@ class Mosaicker::Impl : public MosaicSink {
     registration_ = registration;
     FusionOptions fusion = options_.fusion;
     fusion.registration_threads = options_.registration_threads;  // Register() is thread-safe.
+    fusion.images_in_memory = options_.images_in_memory;
+    fusion.spill_directory = options_.store_path;
     fusion_ = std::make_unique<MapFusion>(
         fusion, camera_,
         [this](const FusionFrame& base, const FusionFrame& templ) { return Register(base, templ); },

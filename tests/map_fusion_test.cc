@@ -8,6 +8,9 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <filesystem>
+#include <functional>
+#include <map>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
 #include <random>
@@ -483,6 +486,116 @@ TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
   EXPECT_EQ(in_flight, 0);
 }
 
+// Held images on disk (images_in_memory): each frame a registration or a re-render reads back
+// is that frame's own image, the radiometric ties and placements are those of a run with every
+// image in memory, and the file is never linked into its folder.
+TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
+  const Sweep s = MakeSweep(48, 6, 2.0, 0.3, 17);
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
+                                    ("irmosaic_fusion_spill_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  auto value_of = [](int64_t index) { return 1000.0 + 7.0 * static_cast<double>(index); };
+  auto image_of = [&](int64_t index) {
+    return cv::Mat(s.camera.height, s.camera.width, CV_16U, cv::Scalar(value_of(index)));
+  };
+  // Checks every base image the registrar gets against the frame's own.
+  // A fresh registrar per run: its tie noise comes from one generator in call order.
+  std::atomic<int> wrong_bases{0}, calls{0};
+  auto checking = [&]() -> PairRegisterFn {
+    PairRegisterFn ideal = IdealRegistrar(s, 0.2, 3);
+    return [&, ideal](const FusionFrame& base, const FusionFrame& templ) {
+      ++calls;
+      double low = 0, high = 0;
+      cv::minMaxLoc(base.image, &low, &high);
+      if (base.image.empty() || low != value_of(base.index) || high != low) ++wrong_bases;
+      return ideal(base, templ);
+    };
+  };
+  // Checks every painted pixel against the value of the frame placed next (Paint precedes
+  // FramePlaced for the same frame, on the same thread).
+  struct CheckingSink : MosaicSink {
+    std::function<double(int64_t)> value_of;
+    std::mutex mu;
+    std::map<std::thread::id, std::pair<double, double>> painted;  // min, max painted value
+    int wrong = 0, checked = 0;
+    void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point) override {
+      double low = 0, high = 0;
+      cv::minMaxLoc(image, &low, &high, nullptr, nullptr, weight > 0);
+      std::lock_guard<std::mutex> lock(mu);
+      painted[std::this_thread::get_id()] = {low, high};
+    }
+    void FramePlaced(const FramePlacement& p) override {
+      std::lock_guard<std::mutex> lock(mu);
+      auto it = painted.find(std::this_thread::get_id());
+      if (it == painted.end()) return;
+      const double expected = value_of(p.index);
+      if (std::abs(it->second.first - expected) > 1 || std::abs(it->second.second - expected) > 1) {
+        ++wrong;
+      }
+      ++checked;
+      painted.erase(it);
+    }
+  };
+  auto run = [&](int in_memory, bool optimize, CheckingSink* sink, FusionStats* stats) {
+    FusionOptions options;
+    options.window_frames = 12;
+    options.solve_every_frames = 3;
+    options.rerender_threshold_px = 0.0;  // Every frame a solve moves is painted again.
+    options.compensate_gain = false;      // Painted values are the frame's own.
+    options.optimize = optimize;
+    options.images_in_memory = in_memory;
+    options.spill_directory = dir.string();
+    std::vector<FramePlacement> placements;
+    {
+      MapFusion fusion(options, s.camera, checking(), sink);
+      for (int64_t i = 0; i < 48; ++i) {
+        FusionFrame f;
+        f.index = i;
+        f.time_s = static_cast<double>(i) * 0.04;
+        f.image = image_of(i);
+        f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+        fusion.Push(std::move(f));
+        if (in_memory > 0 && i >= in_memory) {
+          const FusionStats now = fusion.stats();
+          EXPECT_LE(now.held_images, in_memory) << "after frame " << i;
+          EXPECT_GT(now.spilled_images, 0) << "after frame " << i;
+        }
+        EXPECT_TRUE(std::filesystem::is_empty(dir)) << "a file appeared in the folder";
+      }
+      fusion.Finish();
+      placements = fusion.Placements();
+      *stats = fusion.stats();
+    }
+    return placements;
+  };
+  // Without the optimizer (no timing dependence): the same pairs, placements and gains.
+  FusionStats in_memory_stats, on_disk_stats;
+  const std::vector<FramePlacement> all = run(0, false, nullptr, &in_memory_stats);
+  const std::vector<FramePlacement> two = run(2, false, nullptr, &on_disk_stats);
+  ASSERT_EQ(all.size(), two.size());
+  for (size_t k = 0; k < all.size(); ++k) {
+    EXPECT_EQ(all[k].neighbours, two[k].neighbours) << "frame " << k;
+    EXPECT_EQ(all[k].mosaic_from_image, two[k].mosaic_from_image) << "frame " << k;
+  }
+  EXPECT_EQ(in_memory_stats.spill_reads, 0);
+  EXPECT_GT(on_disk_stats.spill_reads, 0);  // Neighbours of the previous sweep, 6 frames back.
+  EXPECT_TRUE(on_disk_stats.spill_error.empty()) << on_disk_stats.spill_error;
+  // With the optimizer and painting: re-rendered frames read back from disk paint their own
+  // values.
+  CheckingSink sink;
+  sink.value_of = value_of;
+  FusionStats stats;
+  run(2, true, &sink, &stats);
+  EXPECT_EQ(wrong_bases, 0) << "of " << calls << " registrations";
+  EXPECT_GT(stats.rerendered_frames, 0);
+  EXPECT_GT(stats.spill_reads, on_disk_stats.spill_reads);  // Re-renders read too.
+  EXPECT_EQ(sink.wrong, 0) << "of " << sink.checked << " frames painted";
+  EXPECT_GE(sink.checked, 48 + stats.rerendered_frames);
+  EXPECT_TRUE(stats.spill_error.empty()) << stats.spill_error;
+  std::filesystem::remove_all(dir);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;
@@ -506,6 +619,10 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.candidate_frames = -1;
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("candidate_frames"), std::string::npos);
+  options = FusionOptions();
+  options.images_in_memory = -1;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("images_in_memory"), std::string::npos);
   options = FusionOptions();
   options.pair_robust_scale_px = 0.0;
   EXPECT_FALSE(options.IsValid(&error));

@@ -80,6 +80,13 @@ struct FusionOptions {
   // Only they and the frames a solve may still re-render keep their images; older frames
   // stay held without pixels as the frozen ends of pairs (docs/fusion.md, "Held images").
   int candidate_frames = 0;
+  // Held images in memory: 0 keeps every held frame's image in memory; N > 0 keeps the newest
+  // N there and writes older ones to an unnamed file in spill_directory (system temp folder
+  // when empty), read back when a solve re-renders the frame or a new frame registers to it
+  // (docs/fusion.md, "Held images"). Where the file cannot be written (disk full), images
+  // stay in memory (FusionStats::spill_error).
+  int images_in_memory = 0;
+  std::string spill_directory;
   int solve_every_frames = 8;  // A window solve starts after this many new frames.
   int max_neighbours = 2;      // Registrations per new frame (previous + best other).
   // Pairs of a new frame registered at once, on that many threads (the caller's and helpers);
@@ -141,6 +148,10 @@ struct FusionStats {
   int64_t held_frames = 0;           // Frames held (placements, footprints, ends of pairs).
   int64_t held_images = 0;           // Of those, frames that still hold their image,
   int64_t held_image_bytes = 0;      // and the bytes of those images (summed per frame).
+  int64_t spilled_images = 0;        // Held images on disk now (FusionOptions::images_in_memory),
+  int64_t spill_file_bytes = 0;      // the size the file has grown to,
+  int64_t spill_reads = 0;           // and the images read back from it so far.
+  std::string spill_error;           // The first failure to write or read it, or empty.
   // Root mean of the predicted squared placement error (5x5 grid of each frame, mosaic px)
   // over the frames of the final solve; 0 unless FusionOptions::estimate_precision.
   double predicted_rmse_px = 0.0;

@@ -61,6 +61,13 @@ struct MosaickerOptions {
   // tile_size^2 x (sample size + 1) bytes (768 KiB at 512 and 16 bits); fewer means more tiles
   // read back from disk (docs/benchmarks.md, "Session 12").
   int max_cached_tiles = 64;
+  // Frame images the fusion keeps in memory (FusionOptions::images_in_memory, which this
+  // replaces): the newest N; the older ones it still holds for re-rendering (up to the
+  // optimization window, 300 frames) wait in an unnamed file in the store folder, deleted with
+  // the process. 0 keeps them all in memory (640 KiB each at 640 x 512 x 16 bits). Registration
+  // reaches back 8 frames in the bundled sample's sweeps, so with 32 the reads serve the
+  // re-renders (docs/benchmarks.md, "Session 13").
+  int images_in_memory = 32;
   FusionOptions fusion;
 
   // False with a message naming the option when one is out of range.
