@@ -620,10 +620,9 @@ class MapFusion::Impl {
   }
 
   // Registers `templ` to each scored neighbour; up to registration_threads pairs at once (the
-  // calling thread takes its share). Results in the order of `scored`; an exception of any
-  // pair is rethrown here, after every pair has finished.
-  // Registers templ to each scored neighbour; base_images[k] is neighbour k's image (read back
-  // when it is on disk; empty when that failed).
+  // calling thread takes its share). base_images[k] is neighbour k's image (read back when it
+  // is on disk; empty when that failed: the pair fails). Results in the order of `scored`; an
+  // exception of any pair is rethrown here, after every pair has finished.
   std::vector<PairMatch> RegisterPairs(
       const std::vector<std::pair<double, std::shared_ptr<Held>>>& scored,
       const std::vector<cv::Mat>& base_images, const FusionFrame& templ) {
@@ -631,8 +630,9 @@ class MapFusion::Impl {
     auto one = [&](size_t k) {
       const FusionFrame& base = scored[k].second->data;
       if (base_images[k].empty()) {
-        matches[k].reason = "its image could not be read back from disk (" +
-                            (spill_ ? spill_->error() : std::string("none held")) + ")";
+        matches[k].reason = spill_
+                                ? "its image could not be read back from disk: " + spill_->error()
+                                : std::string("it holds no image");
         return;
       }
       if (base.image.data == base_images[k].data) {

@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "buffer_view.h"
 #include "cubic_weights.h"
 #include "irmosaic/error.h"
 
@@ -228,6 +229,8 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     out.reason = "the coarse offset is not finite";
     return out;
   }
+  base_f_ = BufferView(&base_backing_, base.size(), CV_32F);
+  templ_f_ = BufferView(&templ_backing_, templ.size(), CV_32F);
   base.convertTo(base_f_, CV_32F);
   templ.convertTo(templ_f_, CV_32F);
   // Only float input can hold NaN or infinities; the 8- and 16-bit POS orthoimages need no
@@ -244,7 +247,7 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   const int half = lsm_.patch_radius_px() + 3 + options_.margin_px;
   const int dx = static_cast<int>(std::lround(offset.x()));
   const int dy = static_cast<int>(std::lround(offset.y()));
-  valid_.create(templ.size(), CV_8U);
+  valid_ = BufferView(&valid_backing_, templ.size(), CV_8U);
   valid_.setTo(0);
   // Only the overlap's bounding box can hold key points: the template pixels whose square
   // lies inside the template and whose shifted square lies inside the base.

@@ -179,6 +179,9 @@ class IRMOSAIC_EXPORT FineRegistrar {
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
   cv::Mat base_f_, templ_f_, valid_, shifted_;
+  // What base_f_, templ_f_ and valid_ view: buffers that only grow, so pairs of orthoimages of
+  // varying size allocate nothing once warm (src/buffer_view.h).
+  cv::Mat base_backing_, templ_backing_, valid_backing_;
   std::vector<cv::Mat> templ_levels_, base_levels_;  // Dense fit pyramids (scratch).
   cv::Mat smoothed_;
   std::vector<float> dense_rows_;  // Dense fit samples (scratch).
