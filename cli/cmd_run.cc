@@ -224,9 +224,10 @@ int RunRun(int argc, char** argv) {
           : args.Get("--report");
   std::ofstream(report_path) << report.dump(2) << "\n";
   if (!s.fusion.spill_error.empty()) {
-    std::cerr << "irmosaic run: warning: frame images were kept in memory instead of the store "
-                 "folder: "
-              << s.fusion.spill_error << ". Fix: free disk space there, or --images-in-memory 0\n";
+    std::cerr << "irmosaic run: warning: the frame image file in the store folder failed ("
+              << s.fusion.spill_error
+              << "): images it refused stayed in memory, a failed read skipped that re-render. "
+                 "Fix: free disk space there, or --images-in-memory 0\n";
   }
   if (s.frames_placed == 0) {
     std::cerr << "irmosaic run: error: no frame could be placed (see the warnings above)\n";
