@@ -9,8 +9,6 @@
 #include <cstring>
 #include <filesystem>
 
-#include "mat_pool.h"
-
 namespace irmosaic {
 
 struct ImageSpill::State {
@@ -24,8 +22,6 @@ struct ImageSpill::State {
   size_t next_slot = 0;
   size_t stored = 0;
   std::string error;
-  std::unique_ptr<MatPool> read_pool;
-  size_t read_buffers = 0;
 
   ~State() {
     if (fd >= 0) ::close(fd);
@@ -65,10 +61,8 @@ ImageSpill::Handle::~Handle() {
   --state_->stored;
 }
 
-ImageSpill::ImageSpill(std::string directory, size_t read_buffers)
-    : state_(std::make_shared<State>()) {
+ImageSpill::ImageSpill(std::string directory) : state_(std::make_shared<State>()) {
   state_->directory = std::move(directory);
-  state_->read_buffers = read_buffers;
 }
 
 ImageSpill::~ImageSpill() = default;
@@ -114,7 +108,6 @@ std::shared_ptr<const ImageSpill::Handle> ImageSpill::Put(const cv::Mat& image) 
     if (s.bytes == 0) {
       s.rows = image.rows, s.cols = image.cols, s.type = image.type();
       s.bytes = image.total() * image.elemSize();
-      s.read_pool = std::make_unique<MatPool>(s.rows, s.cols, s.type, s.read_buffers);
     } else if (image.rows != s.rows || image.cols != s.cols || image.type() != s.type) {
       return nullptr;  // Another camera's frame: the caller keeps it in memory.
     }
@@ -150,8 +143,10 @@ cv::Mat ImageSpill::Get(const Handle& handle) {
   {
     std::lock_guard<std::mutex> lock(s.mu);
     fd = s.fd;
-    image = s.read_pool->Take();
   }
+  // A fresh buffer, not a pooled one: a pool's reuse is ordered only by OpenCV's reference
+  // count, which ThreadSanitizer cannot see, and images are read back ~2 times per frame.
+  image.create(s.rows, s.cols, s.type);
   if (!ReadAll(fd, image.data, s.bytes, static_cast<off_t>(handle.slot() * s.bytes))) {
     const int code = errno;
     std::lock_guard<std::mutex> lock(s.mu);

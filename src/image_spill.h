@@ -14,8 +14,6 @@
 
 namespace irmosaic {
 
-class MatPool;
-
 class ImageSpill {
  public:
   struct State;
@@ -35,10 +33,8 @@ class ImageSpill {
     size_t slot_;
   };
 
-  // `directory`: where the unnamed file goes (created at the first Put). `read_buffers`: images
-  // read back are pooled buffers of the first image's size (at most that many at once; more
-  // are allocated one by one).
-  explicit ImageSpill(std::string directory, size_t read_buffers = 16);
+  // `directory`: where the unnamed file goes (created at the first Put).
+  explicit ImageSpill(std::string directory);
   ~ImageSpill();
   ImageSpill(const ImageSpill&) = delete;
   ImageSpill& operator=(const ImageSpill&) = delete;

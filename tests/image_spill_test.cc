@@ -154,7 +154,7 @@ TEST(ImageSpillTest, AFullDiskRefusesNewImagesAndKeepsTheStoredOnes) {
 
 TEST(ImageSpillTest, ConcurrentPutsAndGetsKeepEveryImage) {
   const fs::path dir = TestDir("threads");
-  ImageSpill spill(dir.string(), 4);
+  ImageSpill spill(dir.string());
   constexpr int kThreads = 4, kRounds = 60;
   std::atomic<int> mismatches{0}, failures{0};
   std::vector<std::thread> threads;
