@@ -317,15 +317,7 @@ class Mosaicker::Impl : public MosaicSink {
     grid_ = MosaicGrid{gsd};
     georef_ = {lat0, lon0, gsd, frame_->CrsWkt()};
     if (options_.planned_extent) planned_px_ = PlannedBoundsPx();
-    PairRegistrationOptions registration;
-    // The optimizer weighs each pair by its accuracy, so a pair known to 1 px is still worth
-    // far more than POS (metres); the registration's own stricter default is for single pairs.
-    registration.fine.max_joint_sigma_px = 1.0;
-    // The dense overlap fit is off in the pipeline: on the bundled sample it raised the mean
-    // placement error from 2.02 to 3.08 px (scripts/run-sample.sh), through its known bias on
-    // unblurred noisy pairs (docs/matching.md, "Dense refinement").
-    registration.fine.dense_refinement = false;
-    registration_ = registration;
+    registration_ = PipelineRegistrationOptions();
     FusionOptions fusion = options_.fusion;
     fusion.registration_threads = options_.registration_threads;  // Register() is thread-safe.
     fusion.images_in_memory = options_.images_in_memory;

@@ -178,7 +178,11 @@ class IRMOSAIC_EXPORT FineRegistrar {
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
+  // Float copies of the parts of base and template the pair reads (whole images when the
+  // dense fit may run): base_f_ pixel (0, 0) is base pixel base_origin_, and so for the
+  // template. valid_ is in whole-template pixels.
   cv::Mat base_f_, templ_f_, valid_, shifted_;
+  cv::Point base_origin_, templ_origin_;
   // What base_f_, templ_f_ and valid_ view: buffers that only grow, so pairs of orthoimages of
   // varying size allocate nothing once warm (src/buffer_view.h).
   cv::Mat base_backing_, templ_backing_, valid_backing_;
@@ -199,6 +203,13 @@ struct PairRegistrationOptions {
   FineRegistrationOptions fine;
   bool IsValid(std::string* error) const { return fine.IsValid(error); }
 };
+
+// The configuration the Mosaicker registers neighbouring frames with (docs/matching.md,
+// "In the pipeline"): the defaults above, with the dense overlap fit off, a joint-fit accept
+// bound of 1 px (the optimizer weighs each pair by its accuracy) and single-patch LSM
+// convergence at 0.01 px (the joint fit, not the single patches, sets a noisy pair's
+// homography).
+IRMOSAIC_EXPORT PairRegistrationOptions PipelineRegistrationOptions();
 
 // SCD coarse translation, then fine registration: the pair registered end to end.
 class IRMOSAIC_EXPORT PairRegistrar {
