@@ -1396,7 +1396,7 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
   }
   if (status != Status::kOk) return fail(status, error);
   const double ratio = peak.ratio;
-  if (f > 1) {
+  if (f > 1 && options_.refine_at_full_resolution) {
     const Eigen::Vector2d coarse = Eigen::Vector2d(peak.offset.x, peak.offset.y) + peak.subpixel;
     const cv::Point start(std::clamp(static_cast<int>(std::lround(coarse.x())), lo.x, hi.x),
                           std::clamp(static_cast<int>(std::lround(coarse.y())), lo.y, hi.y));

@@ -206,9 +206,10 @@ struct PairRegistrationOptions {
 
 // The configuration the Mosaicker registers neighbouring frames with (docs/matching.md,
 // "In the pipeline"): the defaults above, with the dense overlap fit off, a joint-fit accept
-// bound of 1 px (the optimizer weighs each pair by its accuracy) and single-patch LSM
+// bound of 1 px (the optimizer weighs each pair by its accuracy), single-patch LSM
 // convergence at 0.01 px (the joint fit, not the single patches, sets a noisy pair's
-// homography).
+// homography) and the coarse SCD peak without its full-resolution refinement (the LSM
+// refines the translation).
 IRMOSAIC_EXPORT PairRegistrationOptions PipelineRegistrationOptions();
 
 // SCD coarse translation, then fine registration: the pair registered end to end.

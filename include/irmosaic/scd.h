@@ -88,6 +88,11 @@ struct ScdOptions {
   // sampling's Nyquist frequency, so the criterion loses little (docs/matching.md) at about a
   // quarter of the template fields and dot products.
   int fine_template_step = 2;
+  // With pyramid_factor above 1: refine the coarse peak at full resolution (integer climb,
+  // sub-pixel fits, the reported score). Off, the result is the coarse peak with its
+  // sub-pixel fit, scaled up (about pyramid_factor / 4 px off), and score is 0: for a caller
+  // whose fine registration refines the translation anyway.
+  bool refine_at_full_resolution = true;
   // Search radius above this is refused (kBadInput) to bound time and memory.
   double max_search_radius_px = 1024.0;
 
