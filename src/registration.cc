@@ -1066,7 +1066,7 @@ PairRegistrationOptions PipelineRegistrationOptions() {
   // the coarse peak the homographies were as accurate over the overlap (median corner error
   // 0.332 px against 0.335, 90th percentile 0.79 against 0.82) and one pair that the refined
   // peak sent 21 px astray registered to 0.47 px; the full-resolution refinement was about a
-  // fifth of the pair's CPU (docs/benchmarks.md, "Session 14").
+  // quarter of the pair's CPU (docs/benchmarks.md, "Session 14").
   o.scd.refine_at_full_resolution = false;
   return o;
 }
