@@ -90,8 +90,9 @@ struct ScdOptions {
   int fine_template_step = 2;
   // With pyramid_factor above 1: refine the coarse peak at full resolution (integer climb,
   // sub-pixel fits, the reported score). Off, the result is the coarse peak with its
-  // sub-pixel fit, scaled up (about pyramid_factor / 4 px off), and score is 0: for a caller
-  // whose fine registration refines the translation anyway.
+  // sub-pixel fit, scaled up, and score is 0; status and peak_ratio are the same. For a caller
+  // whose fine registration refines the translation anyway: at pyramid_factor 4 the coarse
+  // peak was within 3.2 px wherever the refined one was within 1 px (ScdTest, 48 hard pairs).
   bool refine_at_full_resolution = true;
   // Search radius above this is refused (kBadInput) to bound time and memory.
   double max_search_radius_px = 1024.0;
