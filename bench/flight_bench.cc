@@ -6,6 +6,7 @@
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
 //                [--solve-every N] [--registration-threads N] [--ground-cache-mb N]
+//                [--lsm-level N]
 //                [--malloc-info DIR]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
@@ -113,6 +114,7 @@ struct Tuning {
   int window_frames = -1;
   int solve_every_frames = -1;
   int registration_threads = -1;
+  int lsm_level = -1;  // MosaickerOptions::registration.fine.lsm_level.
   int heap_trim_interval_frames = -1;
   int max_cached_tiles = -1;
   int images_in_memory = -1;  // -1: the library's default.
@@ -244,6 +246,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.registration_threads > 0) {
     options.registration_threads = g_tuning.registration_threads;
   }
+  if (g_tuning.lsm_level >= 0) options.registration.fine.lsm_level = g_tuning.lsm_level;
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
   if (g_tuning.images_in_memory >= 0) options.images_in_memory = g_tuning.images_in_memory;
   if (g_tuning.heap_trim_interval_frames >= 0) {
@@ -668,6 +671,8 @@ int main(int argc, char** argv) {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
       g_tuning.registration_threads = std::stoi(value());
+    } else if (a == "--lsm-level") {
+      g_tuning.lsm_level = std::stoi(value());
     } else if (a == "--heap-trim-every") {
       g_tuning.heap_trim_interval_frames = std::stoi(value());
     } else if (a == "--max-cached-tiles") {
@@ -689,7 +694,7 @@ int main(int argc, char** argv) {
       std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
-                   "[--window N] [--solve-every N] [--registration-threads N] "
+                   "[--window N] [--solve-every N] [--registration-threads N] [--lsm-level N] "
                    "[--heap-trim-every N] [--max-cached-tiles N] [--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "

@@ -277,6 +277,10 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (!store.IsValid(&store_error)) return fail(store_error);
   std::string fusion_error;
   if (!fusion.IsValid(&fusion_error)) return fail("fusion: " + fusion_error);
+  std::string registration_error;
+  if (!registration.IsValid(&registration_error)) {
+    return fail("registration: " + registration_error);
+  }
   return true;
 }
 
@@ -317,7 +321,7 @@ class Mosaicker::Impl : public MosaicSink {
     grid_ = MosaicGrid{gsd};
     georef_ = {lat0, lon0, gsd, frame_->CrsWkt()};
     if (options_.planned_extent) planned_px_ = PlannedBoundsPx();
-    registration_ = PipelineRegistrationOptions();
+    registration_ = options_.registration;
     FusionOptions fusion = options_.fusion;
     fusion.registration_threads = options_.registration_threads;  // Register() is thread-safe.
     fusion.images_in_memory = options_.images_in_memory;
@@ -865,6 +869,17 @@ class Mosaicker::Impl : public MosaicSink {
     {
       std::lock_guard<std::mutex> lock(registrar_mu_);
       registrars_.push_back(std::move(registrar));
+    }
+    if (options_.on_pair_registered) {
+      PairRegistrationRecord record;
+      record.base_index = base_frame.index;
+      record.template_index = templ_frame.index;
+      record.base = &base;
+      record.templ = &templ;
+      record.predicted_offset = predicted;
+      record.search_radius_px = options_.search_radius_px;
+      record.result = &r;
+      options_.on_pair_registered(record);
     }
     if (!r.ok()) {
       match.reason = std::string(ToString(r.status)) + ": " + r.reason;

@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "irmosaic/error.h"
 #include "registration_pairs.h"
 #include "test_data.h"
 
@@ -83,19 +84,16 @@ TEST(FineRegistration, DistortedPairsWithGainAndBlurMeetTheIssueBound) {
   EXPECT_GE(t.within, 0.95 * t.pairs);
 }
 
-TEST(FineRegistration, PipelineConfigurationMeetsTheIssueBound) {
-  // The Mosaicker's configuration (dense fit off, so the float copies cover only the overlap's
-  // valid box; LSM convergence 0.01 px) on the same blurred pairs: corner RMSE < 0.3 px in
-  // >= 95 % of pairs, as with the defaults. With noise at PSNR 30 dB the joint fit decides
-  // (the pipeline accepts pairs up to 1 px predicted sigma, which the optimizer weighs): at
-  // least 90 % accepted, none accepted beyond the 1 px a seam needs, median under 0.5 px
-  // (measured: 23 of 24, the worst 0.79 px, median 0.32 px; the same with 0.005 px
-  // convergence and with whole-image float copies).
+// The Mosaicker's configuration (dense fit off, so the float copies cover only the overlap's
+// valid box; LSM convergence 0.01 px) on the blurred pairs: corner RMSE < 0.3 px in >= 95 % of
+// pairs, as with the defaults. With noise at PSNR 30 dB the joint fit decides (the pipeline
+// accepts pairs up to 1 px predicted sigma, which the optimizer weighs): at least 90 %
+// accepted, none accepted beyond the 1 px a seam needs, median under 0.5 px.
+void ExpectPipelineBound(const FineRegistrationOptions& pipeline) {
   PairDegradation d;
   d.gain = 0.8;
   d.offset = 20.0;
   d.blur_sigma_px = 2.0;
-  const FineRegistrationOptions pipeline = PipelineRegistrationOptions().fine;
   ASSERT_FALSE(pipeline.dense_refinement);
   const Tally t = RunSimulated(d, 8, 22, pipeline, 0.3);
   EXPECT_GE(t.within, 0.95 * t.pairs);
@@ -106,10 +104,25 @@ TEST(FineRegistration, PipelineConfigurationMeetsTheIssueBound) {
   EXPECT_LT(noisy.errors[noisy.errors.size() / 2], 0.5);
 }
 
-TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
-  // With the dense fit off the float copies cover only the overlap's valid box, in pixels
-  // relative to the box. The same pair placed inside larger no-data canvases (base at (37, 11),
-  // template at (5, 60)) must give the same homography once the canvas shifts are undone.
+TEST(FineRegistration, PipelineConfigurationMeetsTheIssueBound) {
+  // The FLSM on half-resolution copies of the overlap (lsm_level 1).
+  ExpectPipelineBound(PipelineRegistrationOptions().fine);
+}
+
+TEST(FineRegistration, PipelineConfigurationAtFullResolutionMeetsTheIssueBound) {
+  // The same with the FLSM at full resolution (lsm_level 0, the pipeline's until session 15).
+  FineRegistrationOptions level0 = PipelineRegistrationOptions().fine;
+  ASSERT_EQ(level0.lsm_level, 1);
+  level0.lsm_level = 0;
+  ExpectPipelineBound(level0);
+}
+
+// With the dense fit off the float copies cover only the overlap's valid box, in pixels
+// relative to the box. The same pair placed inside larger no-data canvases (base at (37, 11),
+// template at (5, 60): odd shifts, so at lsm_level 1 the half-resolution copies must keep
+// their sampling phase relative to the box) must give the same homography once the canvas
+// shifts are undone.
+void ExpectIndependentOfCanvas(const FineRegistrationOptions& options) {
   const cv::Mat source = LoadGray(kSources[0]);
   ASSERT_FALSE(source.empty());
   std::mt19937 rng(31);
@@ -118,7 +131,7 @@ TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
   d.offset = 20.0;
   d.blur_sigma_px = 2.0;
   d.psnr_db = 30.0;
-  FineRegistrar registrar(PipelineRegistrationOptions().fine);
+  FineRegistrar registrar(options);
   const cv::Point base_at(37, 11), templ_at(5, 60);
   auto embed = [](const cv::Mat& image, cv::Point at, cv::Mat* canvas, cv::Mat* mask) {
     *canvas = cv::Mat::zeros(image.rows + at.y + 23, image.cols + at.x + 41, image.type());
@@ -126,6 +139,7 @@ TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
     image.copyTo((*canvas)(cv::Rect(at, image.size())));
     (*mask)(cv::Rect(at, image.size())).setTo(255);
   };
+  int compared = 0;
   for (int i = 0; i < 6; ++i) {
     const auto pair = MakePair(source, d, i % 2 == 0, &rng);
     const PairRegistration plain =
@@ -138,6 +152,7 @@ TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
         registrar.Register(base, base_mask, templ, templ_mask, pair.prior_offset + shift);
     ASSERT_EQ(plain.status, moved.status) << "pair " << i << ": " << moved.reason;
     if (!plain.ok()) continue;
+    ++compared;
     Eigen::Matrix3d to_base = Eigen::Matrix3d::Identity(), from_templ = to_base;
     to_base.topRightCorner<2, 1>() = -Eigen::Vector2d(base_at.x, base_at.y);
     from_templ.topRightCorner<2, 1>() = Eigen::Vector2d(templ_at.x, templ_at.y);
@@ -146,6 +161,34 @@ TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
         << "pair " << i;
     EXPECT_EQ(plain.tie_points.size(), moved.tie_points.size()) << "pair " << i;
   }
+  EXPECT_GE(compared, 4);
+}
+
+TEST(FineRegistration, PipelineConfigurationIsIndependentOfWhereTheImagesSit) {
+  ExpectIndependentOfCanvas(PipelineRegistrationOptions().fine);
+}
+
+TEST(FineRegistration, PipelineConfigurationAtFullResolutionIsIndependentOfWhereTheImagesSit) {
+  FineRegistrationOptions level0 = PipelineRegistrationOptions().fine;
+  level0.lsm_level = 0;
+  ExpectIndependentOfCanvas(level0);
+}
+
+TEST(FineRegistration, LsmLevelIsChecked) {
+  FineRegistrationOptions o;
+  std::string error;
+  o.lsm_level = 2;
+  EXPECT_FALSE(o.IsValid(&error));
+  EXPECT_NE(error.find("lsm_level"), std::string::npos) << error;
+  o.lsm_level = 1;
+  EXPECT_TRUE(o.IsValid(&error)) << error;
+  o.lsm.method = LsmMethod::kTraditional;
+  EXPECT_FALSE(o.IsValid(&error));
+  EXPECT_NE(error.find("FLSM"), std::string::npos) << error;
+  o.lsm.method = LsmMethod::kFast;
+  o.lsm.scales_px = {1.5, 9.0};
+  EXPECT_FALSE(o.IsValid(&error));
+  EXPECT_THROW(FineRegistrar{o}, InputError);
 }
 
 TEST(FineRegistration, NoisyDistortedPairsAtPsnr20) {

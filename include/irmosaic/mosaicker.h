@@ -14,10 +14,25 @@
 #include "irmosaic/camera.h"
 #include "irmosaic/export.h"
 #include "irmosaic/map_fusion.h"
+#include "irmosaic/orthorectify.h"
 #include "irmosaic/pos.h"
+#include "irmosaic/registration.h"
 #include "irmosaic/tile_store.h"
 
 namespace irmosaic {
+
+// One pair registration of a run as the pipeline saw it (MosaickerOptions::on_pair_registered):
+// the two frames' POS orthoimages (mosaic plane, mosaic GSD), the offset POS predicts and the
+// search radius given to the registrar, and its result. Views valid during the call only.
+struct PairRegistrationRecord {
+  int64_t base_index = -1;
+  int64_t template_index = -1;
+  const OrthoImage* base = nullptr;
+  const OrthoImage* templ = nullptr;
+  Eigen::Vector2d predicted_offset = Eigen::Vector2d::Zero();  // templ(0,0) in base's pixels.
+  double search_radius_px = 0.0;
+  const PairRegistration* result = nullptr;
+};
 
 // Configuration of a whole mosaicking run: frames + POS in, a live georeferenced store out.
 // Checked by the Mosaicker constructor (IsValid); an invalid value throws InputError naming it.
@@ -69,6 +84,13 @@ struct MosaickerOptions {
   // re-renders (docs/benchmarks.md, "Session 13").
   int images_in_memory = 32;
   FusionOptions fusion;
+  // How neighbouring frames are registered (SCD + FLSM + RANSAC): PipelineRegistrationOptions()
+  // unless changed, e.g. fine.lsm_level.
+  PairRegistrationOptions registration = PipelineRegistrationOptions();
+  // Diagnostics: called after each pair registration, on the thread that registered it (one
+  // of registration_threads), with its inputs and result; copy what is kept. For replaying the
+  // pipeline's own pairs (bench/pipeline_pairs_bench) or logging them. Empty: not called.
+  std::function<void(const PairRegistrationRecord&)> on_pair_registered;
 
   // False with a message naming the option when one is out of range.
   bool IsValid(std::string* error) const;

@@ -47,6 +47,14 @@ struct FineRegistrationOptions {
   // Key points keep this many pixels beyond the LSM patch inside both masks, so the patch may
   // move that far during the iterations.
   int margin_px = 3;
+  // Pyramid level of the FLSM (single-patch matches and joint fit): 0 at full resolution; 1
+  // on half-resolution copies of the overlap (cv::pyrDown) with lsm's filter scales, pixel
+  // thresholds and patch divided by 2. The steerable filters are smooth (envelope sigma >=
+  // 4.9 px at scale 7: their response to detail finer than 4 px is below 1e-10 of their
+  // peak), so the half-resolution image carries what they respond to, in a quarter of the
+  // pixels per patch. Key points, positions, sigmas and the homography stay in
+  // full-resolution pixels. 0 or 1; FLSM only (docs/matching.md, "In the pipeline").
+  int lsm_level = 0;
   // Scale the template to the base's contrast over the overlap before matching (one gain and
   // offset per pair), measured after a Gaussian blur of this sigma.
   bool equalize_gain = true;
@@ -186,6 +194,9 @@ class IRMOSAIC_EXPORT FineRegistrar {
   // What base_f_, templ_f_ and valid_ view: buffers that only grow, so pairs of orthoimages of
   // varying size allocate nothing once warm (src/buffer_view.h).
   cv::Mat base_backing_, templ_backing_, valid_backing_;
+  // What the FLSM reads: base_f_ and templ_f_ at lsm_level 0, their pyrDown halves at 1 (pixel
+  // (0, 0) centred on the float copy's pixel (0, 0); level pixel k is copy pixel 2k).
+  cv::Mat base_l_, templ_l_, base_l_backing_, templ_l_backing_;
   std::vector<cv::Mat> templ_levels_, base_levels_;  // Dense fit pyramids (scratch).
   cv::Mat smoothed_;
   std::vector<float> dense_rows_;  // Dense fit samples (scratch).
@@ -208,8 +219,8 @@ struct PairRegistrationOptions {
 // "In the pipeline"): the defaults above, with the dense overlap fit off, a joint-fit accept
 // bound of 1 px (the optimizer weighs each pair by its accuracy), single-patch LSM
 // convergence at 0.01 px (the joint fit, not the single patches, sets a noisy pair's
-// homography) and the coarse SCD peak without its full-resolution refinement (the LSM
-// refines the translation).
+// homography), the coarse SCD peak without its full-resolution refinement (the LSM
+// refines the translation) and the FLSM on half-resolution copies (fine.lsm_level 1).
 IRMOSAIC_EXPORT PairRegistrationOptions PipelineRegistrationOptions();
 
 // SCD coarse translation, then fine registration: the pair registered end to end.
