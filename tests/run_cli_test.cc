@@ -158,22 +158,37 @@ TEST_F(RunCliTest, KillNineThenResumeMatchesAnUninterruptedRun) {
   ASSERT_EQ(RunCli(reference, "", &log), 0) << log;
   const std::string store = dir_ + "/killed.irmosaic";
   const pid_t child = StartRun(store, 0);
-  // Kill once a few generations are on disk, mid-run.
+  // Kill mid-run, once a quarter of the flight (frames 0-15) is published. (Until session 15
+  // this waited for generation 8; a faster pipeline finishes the 64 frames in fewer
+  // publishes, every 0.25 s, so the count was never reached.)
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  int64_t generation = 0;
+  int64_t last_index = -1;
+  bool ended_by_itself = false;
+  int status = 0;
   while (std::chrono::steady_clock::now() < deadline) {
     std::ifstream in(store + "/manifest.json");
     if (in) {
       const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
-      if (m.is_object() && m.contains("generation")) generation = m["generation"].get<int64_t>();
+      if (m.is_object() && m.contains("application") && m["application"].is_object() &&
+          m["application"].contains("last_index")) {
+        last_index = m["application"]["last_index"].get<int64_t>();
+      }
     }
-    if (generation >= 8) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (last_index >= 15) break;
+    if (waitpid(child, &status, WNOHANG) == child) {
+      ended_by_itself = true;
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
-  kill(child, SIGKILL);
-  int status = 0;
-  waitpid(child, &status, 0);
-  ASSERT_GE(generation, 8) << "the run published too little before the deadline";
+  if (!ended_by_itself) {
+    kill(child, SIGKILL);
+    waitpid(child, &status, 0);
+  }
+  ASSERT_FALSE(ended_by_itself) << "the run ended before it was killed";
+  ASSERT_GE(last_index, 15) << "the run published too little before the deadline";
+  ASSERT_LT(last_index, 63) << "the run had published the whole flight: not a mid-run kill";
+  std::printf("killed with frames 0-%lld published\n", static_cast<long long>(last_index));
   // The killed store loads in GDAL.
   {
     GDALDatasetUniquePtr vrt(GDALDataset::Open((store + "/mosaic.vrt").c_str(), GDAL_OF_RASTER));
