@@ -114,6 +114,9 @@ struct Tuning {
   int window_frames = -1;
   int solve_every_frames = -1;
   int registration_threads = -1;
+  int optimizer_nice = -1;
+  double max_output_backlog_s = -1.0;
+  int writer_nice = -1;
   int lsm_level = -1;  // MosaickerOptions::registration.fine.lsm_level.
   int heap_trim_interval_frames = -1;
   int max_cached_tiles = -1;
@@ -216,6 +219,14 @@ class Producer {
   std::thread thread_;
 };
 
+// The q-quantile (0..1) of `values` (nearest rank); 0 when empty.
+double Quantile(std::vector<double> values, double q) {
+  if (values.empty()) return 0.0;
+  std::sort(values.begin(), values.end());
+  const size_t k = static_cast<size_t>(std::lround(q * static_cast<double>(values.size() - 1)));
+  return values[std::min(k, values.size() - 1)];
+}
+
 struct RunConfig {
   int frames = 2000;
   double rate_hz = 0.0;  // 0: as fast as possible.
@@ -247,6 +258,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.registration_threads = g_tuning.registration_threads;
   }
   if (g_tuning.lsm_level >= 0) options.registration.fine.lsm_level = g_tuning.lsm_level;
+  if (g_tuning.optimizer_nice >= 0) options.fusion.optimizer_nice = g_tuning.optimizer_nice;
+  if (g_tuning.max_output_backlog_s >= 0.0) {
+    options.fusion.max_output_backlog_s = g_tuning.max_output_backlog_s;
+  }
+  if (g_tuning.writer_nice >= 0) options.writer_nice = g_tuning.writer_nice;
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
   if (g_tuning.images_in_memory >= 0) options.images_in_memory = g_tuning.images_in_memory;
   if (g_tuning.heap_trim_interval_frames >= 0) {
@@ -268,6 +284,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   size_t next_mark = 0;
   int64_t placed = 0, pushed = 0;
   double last_wall = 0.0, last_cpu = 0.0, producer_cpu = 0.0, push_wall_s = 0.0;
+  std::vector<double> intake_lag_s;
   double push_cpu_s = 0.0;  // The caller's thread inside Push (registration, render, paint).
   int last_frames = 0;
   Clock::time_point start;
@@ -279,6 +296,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     Clock::time_point arrival;
     while (producer.Next(&frame, &arrival)) {
       const auto t0 = Clock::now();
+      // How late the pipeline takes the frame (paced: 0 while the caller keeps up).
+      intake_lag_s.push_back(std::chrono::duration<double>(t0 - arrival).count());
       truth.frames.push_back({frame.index, frame.time_s, frame.true_mosaic_from_image});
       const double push_cpu0 = ThreadCpuSeconds(pthread_self());
       const irmosaic::PushResult r =
@@ -371,6 +390,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"frames_per_s", config.frames / wall},
             {"foreground_frames_per_s", config.frames / foreground_s},
             {"push_ms_per_frame", 1000.0 * push_wall_s / config.frames},
+            {"intake_lag_p50_s", Quantile(intake_lag_s, 0.50)},
+            {"intake_lag_p99_s", Quantile(intake_lag_s, 0.99)},
+            {"intake_lag_max_s", Quantile(intake_lag_s, 1.0)},
             {"push_cpu_ms_per_frame", 1000.0 * push_cpu_s / config.frames},
             {"pipeline_cpu_s", cpu},
             {"pipeline_cpu_ms_per_frame", 1000.0 * cpu / config.frames},
@@ -393,6 +415,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
             {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
             {"rerendered_frames", s.fusion.rerendered_frames},
+            {"deferred_rerenders", s.fusion.deferred_rerenders},
             {"oldest_neighbour_frames", oldest_neighbour},
             {"held_images", s.fusion.held_images},
             {"held_image_mib", static_cast<double>(s.fusion.held_image_bytes) / 1048576.0},
@@ -671,6 +694,12 @@ int main(int argc, char** argv) {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
       g_tuning.registration_threads = std::stoi(value());
+    } else if (a == "--optimizer-nice") {
+      g_tuning.optimizer_nice = std::stoi(value());
+    } else if (a == "--max-output-backlog") {
+      g_tuning.max_output_backlog_s = std::stod(value());
+    } else if (a == "--writer-nice") {
+      g_tuning.writer_nice = std::stoi(value());
     } else if (a == "--lsm-level") {
       g_tuning.lsm_level = std::stoi(value());
     } else if (a == "--heap-trim-every") {
@@ -695,6 +724,7 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] [--lsm-level N] "
+                   "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--heap-trim-every N] [--max-cached-tiles N] [--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
@@ -786,7 +816,8 @@ int main(int argc, char** argv) {
               << f["tile_reloads"].get<int64_t>() << ", overviews read "
               << f["overview_reads"].get<int64_t>() << ", copied before painting "
               << f["tile_copies"].get<int64_t>() << "), re-renders "
-              << f["rerendered_frames"].get<int64_t>() << ", optimizer " << f["optimizer_solves"]
+              << f["rerendered_frames"].get<int64_t>() << " (deferred "
+              << f["deferred_rerenders"].get<int64_t>() << "), optimizer " << f["optimizer_solves"]
               << " solves (mean " << Fixed(f["optimizer_mean_solve_ms"], 0)
               << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)
               << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
@@ -819,7 +850,14 @@ int main(int argc, char** argv) {
               << Fixed(p["publish_latency_p99_s"], 3) << " s, max "
               << Fixed(p["publish_latency_max_s"], 3) << " s; pipeline CPU "
               << Fixed(p["pipeline_cpu_ms_per_frame"], 1) << " ms/frame; writer CPU "
-              << Fixed(p["writer_cpu_ms_per_frame"], 2) << " ms/frame\n";
+              << Fixed(p["writer_cpu_ms_per_frame"], 2) << " ms/frame\n"
+              << "  taken by the pipeline after arrival p50 " << Fixed(p["intake_lag_p50_s"], 3)
+              << " s, p99 " << Fixed(p["intake_lag_p99_s"], 3) << " s, max "
+              << Fixed(p["intake_lag_max_s"], 3) << " s; foreground Push "
+              << Fixed(p["push_cpu_ms_per_frame"], 1) << " CPU ms/frame; re-renders "
+              << p["rerendered_frames"].get<int64_t>() << " (deferred "
+              << p["deferred_rerenders"].get<int64_t>() << "), optimizer " << p["optimizer_solves"]
+              << " solves\n";
   }
 
   if (!compare.empty()) {

@@ -87,7 +87,7 @@ int RunRun(int argc, char** argv) {
   args.Option("--fps", "frame rate of a video or image folder", "25", "HZ");
   args.Option("--t0", "time of the first frame of a video or image folder, seconds", "0", "S");
   args.Option("--threads", "OpenCV threads", "2", "N");
-  args.Option("--registration-threads", "pairs of a new frame registered at once", "1", "N");
+  args.Option("--registration-threads", "pairs of a new frame registered at once", "2", "N");
   args.Option("--max-cached-tiles",
               "store tiles kept in memory (about 3x this many in use; 768 KiB each at 512 px, "
               "16 bits)",

@@ -305,6 +305,9 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("tie_sigma_px", &FusionOptions::tie_sigma_px)
       .def_readwrite("robust_scale", &FusionOptions::robust_scale)
       .def_readwrite("rerender_threshold_px", &FusionOptions::rerender_threshold_px)
+      .def_readwrite("max_rerenders_per_solve", &FusionOptions::max_rerenders_per_solve)
+      .def_readwrite("max_output_backlog_s", &FusionOptions::max_output_backlog_s)
+      .def_readwrite("optimizer_nice", &FusionOptions::optimizer_nice)
       .def_readwrite("optimize", &FusionOptions::optimize)
       .def_readwrite("compensate_gain", &FusionOptions::compensate_gain)
       .def_readwrite("feather_px", &FusionOptions::feather_px)
@@ -340,6 +343,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("registration_threads", &MosaickerOptions::registration_threads)
       .def_readwrite("heap_trim_interval_frames", &MosaickerOptions::heap_trim_interval_frames)
       .def_readwrite("max_cached_tiles", &MosaickerOptions::max_cached_tiles)
+      .def_readwrite("writer_nice", &MosaickerOptions::writer_nice)
       .def_readwrite("images_in_memory", &MosaickerOptions::images_in_memory)
       .def_readwrite("fusion", &MosaickerOptions::fusion)
       .def("validate", [](const MosaickerOptions& o) {

@@ -27,6 +27,7 @@
 #include "fusion_cost.h"
 #include "image_spill.h"
 #include "irmosaic/frame_geometry.h"
+#include "thread_priority.h"
 
 namespace irmosaic {
 namespace {
@@ -87,6 +88,9 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (candidate_frames < 0) return fail("candidate_frames must be >= 0 (0: window_frames)");
   if (images_in_memory < 0) return fail("images_in_memory must be >= 0 (0: all)");
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
+  if (optimizer_nice < 0 || optimizer_nice > 19) {
+    return fail("optimizer_nice must be in 0..19");
+  }
   if (max_neighbours < 1) return fail("max_neighbours must be at least 1");
   if (registration_threads < 1 || registration_threads > 64) {
     return fail("registration_threads must be in 1..64");
@@ -101,6 +105,7 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
   if (max_rerenders_per_solve < 0) return fail("max_rerenders_per_solve must be >= 0");
+  if (!(max_output_backlog_s >= 0.0)) return fail("max_output_backlog_s must be >= 0");
   ceres::LinearSolverType solver_type;
   if (!ceres::StringToLinearSolverType(linear_solver, &solver_type) ||
       solver_type == ceres::DENSE_SCHUR || solver_type == ceres::SPARSE_SCHUR ||
@@ -778,6 +783,7 @@ class MapFusion::Impl {
   void OptimizerLoop() {
     // Named so that top -H, perf and gdb attribute its CPU (15 characters at most).
     pthread_setname_np(pthread_self(), "irm-optimizer");
+    LowerThisThreadPriority(options_.optimizer_nice);
     std::unique_lock<std::mutex> lock(mu_);
     while (true) {
       cv_.wait(lock,
@@ -958,36 +964,36 @@ class MapFusion::Impl {
     // Publish, then re-render frames that moved.
     std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> moved;
     std::vector<std::pair<double, size_t>> candidates;  // (score, index in moved)
+    // Seams on disk (for the lag figures): at each pair's overlap, where the solution puts
+    // the two frames against where they were painted. A move both frames share (the window
+    // drifting as new POS priors join) leaves the seam as it was.
+    std::vector<std::pair<Eigen::Vector2d, Eigen::Vector2d>> overlap(pairs.size());
+    for (size_t k = 0; k < pairs.size(); ++k) {
+      const Pair& p = pairs[k];
+      Eigen::Vector2d pa = Eigen::Vector2d::Zero(), pb = Eigen::Vector2d::Zero();
+      for (size_t t = 0; t < p.base_points.size(); ++t) {
+        pa += p.base_points[t];
+        pb += p.template_points[t];
+      }
+      const double n = static_cast<double>(std::max<size_t>(1, p.base_points.size()));
+      overlap[k] = {pa / n, pb / n};
+    }
+    // Seam lag of pair k when its frames are placed by `base_h` and `templ_h`.
+    auto seam_lag_of = [&](size_t k, const Eigen::Matrix3d& base_h,
+                           const Eigen::Matrix3d& templ_h) {
+      const Pair& p = pairs[k];
+      const auto& [pa, pb] = overlap[k];
+      const Eigen::Vector2d lag_a =
+          ApplyHomography(base_h, pa) - ApplyHomography(p.base->rendered.mosaic_from_image, pa);
+      const Eigen::Vector2d lag_b =
+          ApplyHomography(templ_h, pb) - ApplyHomography(p.templ->rendered.mosaic_from_image, pb);
+      return (lag_a - lag_b).norm();
+    };
     {
       std::lock_guard<std::mutex> lock(mu_);
       // Pair weights are published with the placements (ResumeState reads both).
       for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
       solving_ = false;
-      // Seams on disk (for the lag figures): at each pair's overlap, where the solution puts
-      // the two frames against where they were painted. A move both frames share (the window
-      // drifting as new POS priors join) leaves the seam as it was.
-      std::vector<std::pair<Eigen::Vector2d, Eigen::Vector2d>> overlap(pairs.size());
-      for (size_t k = 0; k < pairs.size(); ++k) {
-        const Pair& p = pairs[k];
-        Eigen::Vector2d pa = Eigen::Vector2d::Zero(), pb = Eigen::Vector2d::Zero();
-        for (size_t t = 0; t < p.base_points.size(); ++t) {
-          pa += p.base_points[t];
-          pb += p.template_points[t];
-        }
-        const double n = static_cast<double>(std::max<size_t>(1, p.base_points.size()));
-        overlap[k] = {pa / n, pb / n};
-      }
-      // Seam lag of pair k when its frames are placed by `base_h` and `templ_h`.
-      auto seam_lag_of = [&](size_t k, const Eigen::Matrix3d& base_h,
-                             const Eigen::Matrix3d& templ_h) {
-        const Pair& p = pairs[k];
-        const auto& [pa, pb] = overlap[k];
-        const Eigen::Vector2d lag_a =
-            ApplyHomography(base_h, pa) - ApplyHomography(p.base->rendered.mosaic_from_image, pa);
-        const Eigen::Vector2d lag_b =
-            ApplyHomography(templ_h, pb) - ApplyHomography(p.templ->rendered.mosaic_from_image, pb);
-        return (lag_a - lag_b).norm();
-      };
       for (const auto& f : frames) {
         FramePlacement& live = placements_[f->slot];
         // Frames placed while we solved were chained from the old placement of their
@@ -1022,7 +1028,39 @@ class MapFusion::Impl {
         for (size_t k = 0; k < budget; ++k) kept.push_back(moved[candidates[k].second]);
         moved = std::move(kept);
       }
-      for (auto& [frame, placement] : moved) frame->rendered = placement;
+      const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+      stats_.solves += 1;
+      stats_.last_solve_ms = ms;
+      stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
+      stats_.total_solve_ms += ms;
+      const double cpu_ms = ThreadCpuMs() - start_cpu_ms;
+      stats_.max_solve_cpu_ms = std::max(stats_.max_solve_cpu_ms, cpu_ms);
+      stats_.total_solve_cpu_ms += cpu_ms;
+      if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
+    }
+    // Re-render, the frames that moved most first. A background solve pauses while the
+    // output is behind (new frames first); what it leaves keeps its painted placement and is
+    // a candidate of the next solve.
+    Renderer* renderer = final_solve || last_slot != SIZE_MAX ? &foreground_ : &background_;
+    const bool may_defer = renderer == &background_ && options_.max_output_backlog_s > 0.0;
+    size_t rendered_count = 0;
+    for (const auto& [frame, placement] : moved) {
+      if (may_defer && sink_ && sink_->OutputBacklogSeconds() > options_.max_output_backlog_s) {
+        break;
+      }
+      const cv::Mat image = ImageOf(images[frame->slot]);
+      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer);
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        frame->rendered = placement;
+      }
+      if (sink_) sink_->FramePlaced(placement);
+      ++rendered_count;
+    }
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      stats_.rerendered_frames += static_cast<int64_t>(rendered_count);
+      stats_.deferred_rerenders += static_cast<int64_t>(moved.size() - rendered_count);
       if (!final_solve && last_slot == SIZE_MAX) {
         // The lag the disk keeps after this solve's re-renders (re-rendered frames have none).
         double painted_sum_sq = 0.0;
@@ -1046,22 +1084,6 @@ class MapFusion::Impl {
         stats_.mean_painted_lag_px = (stats_.mean_painted_lag_px * n + painted_rms) / (n + 1);
         stats_.mean_seam_lag_px = (stats_.mean_seam_lag_px * n + seam_rms) / (n + 1);
       }
-      const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
-      stats_.solves += 1;
-      stats_.last_solve_ms = ms;
-      stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
-      stats_.total_solve_ms += ms;
-      const double cpu_ms = ThreadCpuMs() - start_cpu_ms;
-      stats_.max_solve_cpu_ms = std::max(stats_.max_solve_cpu_ms, cpu_ms);
-      stats_.total_solve_cpu_ms += cpu_ms;
-      stats_.rerendered_frames += static_cast<int64_t>(moved.size());
-      if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
-    }
-    Renderer* renderer = final_solve || last_slot != SIZE_MAX ? &foreground_ : &background_;
-    for (const auto& [frame, placement] : moved) {
-      const cv::Mat image = ImageOf(images[frame->slot]);
-      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer);
-      if (sink_) sink_->FramePlaced(placement);
     }
   }
 

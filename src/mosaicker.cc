@@ -254,6 +254,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("registration_threads must be in 1..64");
   }
   if (heap_trim_interval_frames < 0) return fail("heap_trim_interval_frames must be >= 0");
+  if (writer_nice < 0 || writer_nice > 19) {
+    return fail("writer_nice " + std::to_string(writer_nice) + " must be in 0..19");
+  }
   if (max_cached_tiles < 1 || max_cached_tiles > 65536) {
     return fail("max_cached_tiles must be in 1..65536");
   }
@@ -452,17 +455,33 @@ class Mosaicker::Impl : public MosaicSink {
     NotifyPublished();
   }
 
-  void RequestPublishQuiet() {
-    if (!store_) return;
+  // Returns the generation requested (0 without a store).
+  int64_t RequestPublishQuiet() {
+    if (!store_) return 0;
     store_->SetApplicationState(ApplicationState());
     const int64_t generation = store_->RequestPublish();
     for (auto& p : pending_) {
       if (p.second == 0) p.second = generation;
     }
     last_publish_ = Clock::now();
+    return generation;
   }
 
   void Finish() {
+    // The frames placed since the last publish go out, and OnPublished hears of them, before
+    // the final solve (every frame of the window, re-rendering all that moved), which takes
+    // seconds: the newest frames waited for it (the last frames of a 25 fps run reached the
+    // disk 5-6 s after they arrived instead of 0.3-0.5 s; docs/benchmarks.md, "Session 16").
+    if (store_ && !replay_ && !pending_.empty()) {
+      const int64_t generation = RequestPublishQuiet();
+      try {
+        store_->WaitPublished(generation);
+      } catch (const OutputError&) {
+        // The writer failed (full disk): Close() below reports it, after the final solve.
+      }
+      CollectLatencies();
+      NotifyPublished();
+    }
     fusion_->Finish();
     if (!store_) return;
     RequestPublishQuiet();
@@ -585,6 +604,10 @@ class Mosaicker::Impl : public MosaicSink {
   void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) override {
     if (replay_ || !store_) return;
     store_->Paint(image, weight, origin_px);
+  }
+  double OutputBacklogSeconds() const override {
+    const TileStore* store = StoreView();
+    return store ? store->BacklogSeconds() : 0.0;
   }
   void FramePlaced(const FramePlacement& placement) override {
     if (replay_ || !store_) return;
@@ -739,6 +762,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.compression = options_.compression;
     store_options.overview_interval_s = options_.overview_interval_s;
     store_options.max_cached_tiles = static_cast<size_t>(options_.max_cached_tiles);
+    store_options.writer_nice = options_.writer_nice;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
     if (!planned_px_.empty()) opened->SetPlannedBoundsPx(planned_px_);
@@ -949,7 +973,11 @@ class Mosaicker::Impl : public MosaicSink {
     std::lock_guard<std::mutex> lock(mu_);
     while (!pending_.empty() && pending_.front().second != 0 &&
            pending_.front().second <= published) {
-      latencies_s_.push_back(std::chrono::duration<double>(now - pending_.front().first).count());
+      // From the frame's arrival to the end of the publish that put it on disk (not to this
+      // call, which may come much later, e.g. after Finish's final solve).
+      const auto at = store_->PublishedAt(pending_.front().second);
+      latencies_s_.push_back(
+          std::chrono::duration<double>(at.value_or(now) - pending_.front().first).count());
       pending_.pop_front();
     }
     if (latencies_s_.size() > 200000)

@@ -14,6 +14,7 @@
 #include <condition_variable>
 #include <cstring>
 #include <ctime>
+#include <deque>
 #include <limits>
 #include <list>
 #include <mutex>
@@ -24,6 +25,7 @@
 #include "irmosaic/error.h"
 #include "nlohmann/json.hpp"
 #include "store_internal.h"
+#include "thread_priority.h"
 
 namespace irmosaic {
 
@@ -271,6 +273,8 @@ struct TileStore::Impl {
   bool secondary_owed = false;  // Overviews or frames.gpkg were deferred by a publish.
   bool closed = false;          // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
+  std::deque<std::pair<int64_t, Clock::time_point>> published_at;  // The last 4096 publishes.
+  int64_t published_at_dropped_through = 0;  // Newest generation dropped from published_at.
   std::vector<double> publish_latencies_ms;
   Stats stats;
 
@@ -680,6 +684,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.bytes_written += bytes;
   if (error.empty()) {
     published_generation = generation;
+    published_at.emplace_back(generation, Clock::now());
+    if (published_at.size() > 4096) {
+      published_at_dropped_through = published_at.front().first;
+      published_at.pop_front();
+    }
     ++stats.publishes;
     auto it = request_time_of.find(generation);
     if (it != request_time_of.end()) {
@@ -709,12 +718,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 void TileStore::Impl::WriterLoop() {
   pthread_setname_np(pthread_self(), "irm-tile-writer");
   // Background work yields to the painting (registration) threads on a busy machine.
-  if (options.writer_nice > 0) {
-    const int tid = static_cast<int>(::syscall(SYS_gettid));
-    errno = 0;
-    const int current = ::getpriority(PRIO_PROCESS, tid);
-    if (errno == 0) ::setpriority(PRIO_PROCESS, tid, std::min(19, current + options.writer_nice));
-  }
+  LowerThisThreadPriority(options.writer_nice);
   std::unique_lock<std::mutex> lock(mutex);
   for (;;) {
     changed.wait(lock, [&] { return stop || requested_generation > started_generation; });
@@ -1057,6 +1061,32 @@ void TileStore::WaitPublished(int64_t generation) {
 int64_t TileStore::published_generation() const {
   std::lock_guard<std::mutex> lock(impl_->mutex);
   return impl_->published_generation;
+}
+
+double TileStore::BacklogSeconds() const {
+  const Impl& s = *impl_;
+  std::lock_guard<std::mutex> lock(s.mutex);
+  if (s.requested_generation <= s.published_generation ||
+      s.failed_generation >= s.requested_generation) {
+    return 0.0;
+  }
+  const auto it = s.request_time_of.upper_bound(s.published_generation);
+  if (it == s.request_time_of.end()) return 0.0;
+  return std::chrono::duration<double>(Clock::now() - it->second).count();
+}
+
+std::optional<std::chrono::steady_clock::time_point> TileStore::PublishedAt(
+    int64_t generation) const {
+  std::lock_guard<std::mutex> lock(impl_->mutex);
+  const auto& times = impl_->published_at;
+  const auto it = std::lower_bound(
+      times.begin(), times.end(), generation,
+      [](const std::pair<int64_t, Clock::time_point>& p, int64_t g) { return p.first < g; });
+  if (it == times.end() || (impl_->published_at_dropped_through > 0 &&
+                            generation <= impl_->published_at_dropped_through)) {
+    return std::nullopt;
+  }
+  return it->second;
 }
 
 void TileStore::ReadWindow(const cv::Rect& mosaic_px, cv::Mat* image, cv::Mat* coverage) const {

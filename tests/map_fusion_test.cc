@@ -596,6 +596,85 @@ TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
   std::filesystem::remove_all(dir);
 }
 
+// Background re-renders take what the output can absorb: while the sink reports its output
+// behind by more than max_output_backlog_s, a solve paints nothing again and leaves its frames
+// to the next solve; the final solve re-renders every frame that moved regardless.
+TEST(MapFusionTest, BackgroundRerendersWaitWhileTheOutputIsBehind) {
+  const Sweep s = MakeSweep(60, 6, 2.0, 0.3, 23);
+  struct BacklogSink : MosaicSink {
+    std::atomic<double> backlog_s{0.0};
+    std::atomic<int> placed{0};
+    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+    void FramePlaced(const FramePlacement&) override { ++placed; }
+    double OutputBacklogSeconds() const override { return backlog_s; }
+  };
+  struct Outcome {
+    FusionStats before_finish, after_finish;
+    int placed_before_finish = 0, placed_after_finish = 0;
+  };
+  auto run = [&](double sink_backlog_s, double max_backlog_s) {
+    FusionOptions options;
+    options.window_frames = 20;
+    options.solve_every_frames = 4;
+    options.rerender_threshold_px = 0.0;  // Every frame a solve moves is a re-render.
+    options.compensate_gain = false;
+    options.max_output_backlog_s = max_backlog_s;
+    BacklogSink sink;
+    sink.backlog_s = sink_backlog_s;
+    MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 3), &sink);
+    const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+    for (int64_t i = 0; i < 60; ++i) {
+      FusionFrame f;
+      f.index = i;
+      f.time_s = static_cast<double>(i) * 0.04;
+      f.image = image;
+      f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+      fusion.Push(std::move(f));
+      // Let the optimizer solve as the frames come (at most 2 s a frame on a loaded machine).
+      const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+      while (i >= 8 && i % 4 == 3 && fusion.stats().optimizer_lag_frames > 4 &&
+             std::chrono::steady_clock::now() < deadline) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      }
+    }
+    Outcome out;
+    out.before_finish = fusion.stats();
+    out.placed_before_finish = sink.placed;
+    fusion.Finish();
+    out.after_finish = fusion.stats();
+    out.placed_after_finish = sink.placed;
+    return out;
+  };
+  const Outcome behind = run(10.0, 0.25);
+  const Outcome keeping_up = run(0.0, 0.25);
+  const Outcome no_bound = run(10.0, 0.0);
+  std::printf(
+      "behind: %lld solves, %lld re-renders, %lld deferred; keeping up: %lld solves, %lld "
+      "re-renders; no bound: %lld re-renders\n",
+      static_cast<long long>(behind.before_finish.solves),
+      static_cast<long long>(behind.before_finish.rerendered_frames),
+      static_cast<long long>(behind.before_finish.deferred_rerenders),
+      static_cast<long long>(keeping_up.before_finish.solves),
+      static_cast<long long>(keeping_up.before_finish.rerendered_frames),
+      static_cast<long long>(no_bound.before_finish.rerendered_frames));
+  for (const Outcome* o : {&behind, &keeping_up, &no_bound}) {
+    ASSERT_GE(o->before_finish.solves, 3);
+  }
+  // Output behind: the background solves painted nothing again, and said so.
+  EXPECT_EQ(behind.before_finish.rerendered_frames, 0);
+  EXPECT_EQ(behind.placed_before_finish, 60);
+  EXPECT_GT(behind.before_finish.deferred_rerenders, 0);
+  // The final solve is not held back: every frame it moved is painted again.
+  EXPECT_GT(behind.after_finish.rerendered_frames, 0);
+  EXPECT_EQ(behind.placed_after_finish, 60 + behind.after_finish.rerendered_frames);
+  // Output keeping up, or no bound: the background solves re-render, nothing deferred.
+  for (const Outcome* o : {&keeping_up, &no_bound}) {
+    EXPECT_GT(o->before_finish.rerendered_frames, 0);
+    EXPECT_EQ(o->after_finish.deferred_rerenders, 0);
+    EXPECT_EQ(o->placed_after_finish, 60 + o->after_finish.rerendered_frames);
+  }
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;

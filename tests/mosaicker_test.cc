@@ -186,6 +186,9 @@ TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
       {"publish_interval_s", [](MosaickerOptions* o) { o->publish_interval_s = 0.0; }},
       {"heap_trim_interval_frames", [](MosaickerOptions* o) { o->heap_trim_interval_frames = -1; }},
       {"max_cached_tiles", [](MosaickerOptions* o) { o->max_cached_tiles = 0; }},
+      {"writer_nice", [](MosaickerOptions* o) { o->writer_nice = 20; }},
+      {"optimizer_nice", [](MosaickerOptions* o) { o->fusion.optimizer_nice = -1; }},
+      {"max_output_backlog_s", [](MosaickerOptions* o) { o->fusion.max_output_backlog_s = -1; }},
       {"max_range_m", [](MosaickerOptions* o) { o->max_range_m = std::nan(""); }},
       {"pos_position_sigma_m", [](MosaickerOptions* o) { o->pos_position_sigma_m = 0.0; }},
       {"fusion", [](MosaickerOptions* o) { o->fusion.window_frames = -5; }},
@@ -341,6 +344,52 @@ GdalRaster ReadWithGdal(const std::string& path, int cv_type) {
     return GdalRaster();
   }
   return out;
+}
+
+// Finish() publishes the frames placed since the last publish before its final solve (which
+// takes seconds on a long window), so the newest frames do not wait for it: OnPublished hears
+// of a generation holding the last frame while no solve has refined any frame yet.
+TEST(MosaickerApiTest, FinishPublishesTheLastFramesBeforeTheFinalSolve) {
+  FlightSimulator sim(Flight(10));
+  MosaickerOptions options;
+  options.store_path = TempStore("finish_order");
+  options.mode = TileStoreOptions::Mode::kOverwrite;
+  options.publish_interval_s = 1e6;          // No publish while pushing: all wait for Finish.
+  options.fusion.solve_every_frames = 1000;  // No background solve: only Finish's.
+  Mosaicker m(options, sim.camera(), sim.MeasuredPos());
+  struct Seen {
+    int64_t generation = 0, last_index = -1;
+    int optimized_frames = 0;
+  };
+  std::vector<Seen> seen;
+  m.OnPublished([&](int64_t generation) {
+    Seen s;
+    s.generation = generation;
+    std::ifstream in(fs::path(options.store_path) / "manifest.json");
+    const nlohmann::json manifest = nlohmann::json::parse(in, nullptr, false);
+    if (manifest.is_object() && manifest.contains("application") &&
+        manifest["application"].is_object()) {
+      s.last_index = manifest["application"].value("last_index", int64_t{-1});
+    }
+    for (const FramePlacement& p : m.Placements()) s.optimized_frames += p.optimized_times > 0;
+    seen.push_back(s);
+  });
+  for (int i = 0; i < 10; ++i) {
+    const SimFrame f = sim.Render(i);
+    ASSERT_TRUE(m.Push(i, f.time_s, f.image).placed());
+  }
+  EXPECT_TRUE(seen.empty());
+  m.Finish();
+  ASSERT_GE(seen.size(), 2u);
+  // Before the final solve: every frame on disk, none refined yet.
+  EXPECT_EQ(seen.front().last_index, 9);
+  EXPECT_EQ(seen.front().optimized_frames, 0);
+  // After it: every frame refined, in a later generation.
+  EXPECT_GT(seen.back().generation, seen.front().generation);
+  EXPECT_EQ(seen.back().optimized_frames, 10);
+  const MosaickerSummary summary = m.summary();
+  EXPECT_EQ(summary.frames_placed, 10);
+  fs::remove_all(options.store_path);
 }
 
 TEST(MosaickerApiTest, GenerationsWindowAndRecordsAgreeWithWhatGdalReads) {

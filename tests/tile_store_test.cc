@@ -611,6 +611,45 @@ TEST(TileStoreTest, MemoryStaysBoundedAndEvictedTilesReloadExactly) {
   store->Close();
 }
 
+// The two figures the live path steers by: how far the writer is behind (the map fusion pauses
+// its re-renders above a bound) and when a generation reached the disk (publish latency).
+TEST(TileStoreTest, BacklogAndPublishTimesFollowTheWriter) {
+  const fs::path dir = FreshDir("backlog") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 256);
+  options.max_cached_tiles = 1024;
+  options.pixel_type = PixelType::kUInt16;
+  auto store = TileStore::Open(options, Georef());
+  EXPECT_EQ(store->BacklogSeconds(), 0.0);
+  EXPECT_FALSE(store->PublishedAt(1).has_value());
+  // 8 x 8 tiles to write: the writer needs far longer than the calls below take.
+  for (int row = 0; row < 8; ++row) PaintSquare(store.get(), {0, row * 256}, 8 * 256, 1000.0);
+  const auto requested = std::chrono::steady_clock::now();
+  const int64_t generation = store->RequestPublish();
+  double most = 0.0;
+  int samples = 0;
+  while (store->published_generation() < generation) {
+    const double backlog = store->BacklogSeconds();
+    const double since =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - requested).count();
+    EXPECT_LE(backlog, since + 1e-3);  // Counted from the request, never before it.
+    most = std::max(most, backlog);
+    ++samples;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  const auto waited = std::chrono::steady_clock::now();
+  EXPECT_GT(samples, 0);
+  EXPECT_GT(most, 0.0) << "the writer was never seen behind in " << samples << " samples";
+  EXPECT_EQ(store->BacklogSeconds(), 0.0);
+  const auto at = store->PublishedAt(generation);
+  ASSERT_TRUE(at.has_value());
+  EXPECT_GE(*at, requested);
+  EXPECT_LE(*at, waited);
+  // An earlier generation folded into this publish has the same time; a later one has none.
+  EXPECT_EQ(store->PublishedAt(generation - 1), at);
+  EXPECT_FALSE(store->PublishedAt(generation + 1).has_value());
+  store->Close();
+}
+
 // Overview tiles: HalveTile's one-pass integer path gives exactly the coverage-weighted 2 x 2 mean
 // of the float formula (HalveTile's Float32 path: weights, INTER_AREA sums, divide; then round to
 // nearest even), over random values and coverage, the type's extremes and exact halves.

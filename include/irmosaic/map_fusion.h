@@ -72,6 +72,10 @@ class IRMOSAIC_EXPORT MosaicSink {
   virtual void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) = 0;
   // A frame was placed or moved.
   virtual void FramePlaced(const FramePlacement& placement) = 0;
+  // How far the output is behind what was painted, seconds (0: keeping up): background
+  // re-renders pause above FusionOptions::max_output_backlog_s so that they do not delay the
+  // publication of new frames. Called from the optimizer thread.
+  virtual double OutputBacklogSeconds() const { return 0.0; }
 };
 
 struct FusionOptions {
@@ -88,7 +92,12 @@ struct FusionOptions {
   int images_in_memory = 0;
   std::string spill_directory;
   int solve_every_frames = 8;  // A window solve starts after this many new frames.
-  int max_neighbours = 2;      // Registrations per new frame (previous + best other).
+  // The optimizer thread's nice increment (0..19; 0: the caller's priority). Its solves and
+  // re-renders then take the CPU that placing new frames (the caller) and the store's writer
+  // (nice 5) leave, instead of an equal share: on a machine too busy for all three, new
+  // frames keep reaching the disk and the solves come less often (docs/fusion.md, "Priorities").
+  int optimizer_nice = 10;
+  int max_neighbours = 2;  // Registrations per new frame (previous + best other).
   // Pairs of a new frame registered at once, on that many threads (the caller's and helpers);
   // above 1 the registrar is called concurrently and must be thread-safe. The results and
   // their order are the same for any value.
@@ -106,6 +115,11 @@ struct FusionOptions {
   // first (0: no limit); the final solve re-renders every frame that moved. Bounds the
   // painting and tile writing a solve causes (each re-render rewrites a few tiles).
   int max_rerenders_per_solve = 16;
+  // A background solve stops re-rendering (the rest wait for the next solve) while the sink's
+  // output is more than this many seconds behind (MosaicSink::OutputBacklogSeconds): new
+  // frames reach the disk first, and the re-renders take what the writer can absorb besides.
+  // 0: no such pause.
+  double max_output_backlog_s = 0.25;
   bool optimize = true;           // Run the global optimization thread.
   bool compensate_gain = true;    // Per-frame gain and offset from the overlaps.
   double gain_prior_sigma = 0.5;  // Keeps the global level: gain ~ 1 +- this.
@@ -133,6 +147,9 @@ struct FusionStats {
   int64_t pairs_ok = 0;
   int64_t solves = 0;
   int64_t rerendered_frames = 0;
+  // Re-renders a background solve chose but left to the next one because the output was
+  // behind (FusionOptions::max_output_backlog_s).
+  int64_t deferred_rerenders = 0;
   // What the mosaic on disk lags behind the placements after each background solve's
   // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
   // seam lag (the base frame's move since painted less the template's, at the overlap), and

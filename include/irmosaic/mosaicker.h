@@ -54,6 +54,8 @@ struct MosaickerOptions {
   double publish_interval_s = 0.25;     // How often the store publishes a new generation.
   // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
   double overview_interval_s = 2.0;
+  // The store's writer thread's nice increment (TileStoreOptions::writer_nice, 0..19).
+  int writer_nice = 5;
   int tile_size = 512;               // Store tile side, pixels: a multiple of 16 in [64, 8192].
   std::string compression = "ZSTD";  // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
   // Write the extent the POS track foresees for the whole flight into the store
@@ -63,9 +65,11 @@ struct MosaickerOptions {
   bool planned_extent = true;
   // Pairs of a new frame registered at once (FusionOptions::registration_threads, which this
   // replaces): 2 registers a frame to its two neighbours on two threads, the same placements.
-  // 1 by default: on 2 cores the whole pipeline is CPU-bound and gained nothing over 3000+
-  // frames, for 30-60 MiB more peak memory (docs/benchmarks.md, "Session 7").
-  int registration_threads = 1;
+  // 2 by default since session 16: with the optimizer yielding (FusionOptions::optimizer_nice)
+  // it is what lets the caller take frames at 25 per second on 2 cores (one thread needs
+  // ~35 CPU ms a frame, at the sensor's 40 ms interval, and fell seconds behind), for ~30 MiB
+  // more peak memory (docs/benchmarks.md, "Session 16"). 1: one pair after the other.
+  int registration_threads = 2;
   // Every this many pushed frames, Push returns the free pages the C library's heap keeps to
   // the system (glibc malloc_trim; buffers of varying size freed on several threads leave free
   // memory the heap otherwise holds on to and grows over a long flight: docs/benchmarks.md,

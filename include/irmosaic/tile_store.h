@@ -2,9 +2,11 @@
 
 #include <Eigen/Core>
 #include <array>
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -131,6 +133,13 @@ class IRMOSAIC_EXPORT TileStore {
   void WaitPublished(int64_t generation);
   // Generation of the last manifest written (0: nothing published yet).
   int64_t published_generation() const;
+  // When the first publish of `generation` or a later one finished (the writer may fold
+  // several requested generations into one publish); nullopt if none has yet, or if it is
+  // older than the last 4096 publishes.
+  std::optional<std::chrono::steady_clock::time_point> PublishedAt(int64_t generation) const;
+  // How long the oldest requested publish that has not finished has waited, seconds; 0 when
+  // the writer has published every request (or has failed and stopped publishing).
+  double BacklogSeconds() const;
 
   // Reads a level-0 window back (as last painted, published or not). image gets the store's
   // pixel type, coverage is CV_8U 255 where painted, 0 elsewhere.

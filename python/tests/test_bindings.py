@@ -323,3 +323,21 @@ def test_invalid_tile_size_is_refused_with_its_name(tmp_path, flight):
     with pytest.raises(irmosaic.InputError, match="compression"):
         irmosaic.Mosaicker(options, camera, pos)
     assert not (tmp_path / "t.irmosaic").exists()
+
+
+def test_background_priorities_are_options_checked_by_name(tmp_path):
+    options = irmosaic.MosaickerOptions(str(tmp_path / "p.irmosaic"))
+    assert options.writer_nice == 5
+    assert options.fusion.optimizer_nice == 10
+    assert options.fusion.max_output_backlog_s == 0.25
+    options.fusion.optimizer_nice = 0
+    options.fusion.max_output_backlog_s = 0.0
+    options.writer_nice = 0
+    options.validate()
+    options.fusion.optimizer_nice = 20
+    with pytest.raises(ValueError, match="optimizer_nice"):
+        options.validate()
+    options.fusion.optimizer_nice = 10
+    options.writer_nice = -1
+    with pytest.raises(ValueError, match="writer_nice"):
+        options.validate()
