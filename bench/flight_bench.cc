@@ -109,6 +109,8 @@ double HeapMiB(bool in_use) {
 // Overrides of MosaickerOptions defaults (negative: keep the default).
 struct Tuning {
   double publish_interval_s = -1.0;
+  double overview_interval_s = -1.0;
+  int tile_size = -1;
   int max_rerenders_per_solve = -1;
   double rerender_threshold_px = -1.0;
   int window_frames = -1;
@@ -244,6 +246,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   options.ground_height_m = sim.options().ground_height_m;
   options.fusion.optimize = config.optimize;
   if (g_tuning.publish_interval_s >= 0) options.publish_interval_s = g_tuning.publish_interval_s;
+  if (g_tuning.overview_interval_s >= 0) {
+    options.overview_interval_s = g_tuning.overview_interval_s;
+  }
+  if (g_tuning.tile_size > 0) options.tile_size = g_tuning.tile_size;
   if (g_tuning.max_rerenders_per_solve >= 0) {
     options.fusion.max_rerenders_per_solve = g_tuning.max_rerenders_per_solve;
   }
@@ -406,6 +412,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
             {"tiles_written", st.tiles_written},
             {"overview_tiles_written", st.overview_tiles_written},
+            {"publishes", st.publishes},
+            {"overview_updates", st.overview_updates},
+            {"overview_updates_early", st.overview_updates_early},
             {"tile_reloads", st.tile_reloads},
             {"overview_reads", st.overview_reads},
             {"tile_copies", st.tile_copies},
@@ -429,6 +438,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"placement_p95_px", score.rmse_px.p95},
             {"placement_max_px", score.rmse_px.max},
             {"publish_interval_s", options.publish_interval_s},
+            {"overview_interval_s", options.overview_interval_s},
+            {"tile_size", options.tile_size},
             {"max_rerenders_per_solve", options.fusion.max_rerenders_per_solve},
             {"rerender_threshold_px", options.fusion.rerender_threshold_px},
             {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
@@ -684,6 +695,10 @@ int main(int argc, char** argv) {
       store = value();
     } else if (a == "--publish-interval") {
       g_tuning.publish_interval_s = std::stod(value());
+    } else if (a == "--overview-interval") {
+      g_tuning.overview_interval_s = std::stod(value());
+    } else if (a == "--tile-size") {
+      g_tuning.tile_size = std::stoi(value());
     } else if (a == "--max-rerenders") {
       g_tuning.max_rerenders_per_solve = std::stoi(value());
     } else if (a == "--rerender-threshold") {
@@ -725,6 +740,7 @@ int main(int argc, char** argv) {
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--solve-every N] [--registration-threads N] [--lsm-level N] "
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
+                   "[--overview-interval S] [--tile-size N] "
                    "[--heap-trim-every N] [--max-cached-tiles N] [--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
@@ -857,7 +873,12 @@ int main(int argc, char** argv) {
               << Fixed(p["push_cpu_ms_per_frame"], 1) << " CPU ms/frame; re-renders "
               << p["rerendered_frames"].get<int64_t>() << " (deferred "
               << p["deferred_rerenders"].get<int64_t>() << "), optimizer " << p["optimizer_solves"]
-              << " solves\n";
+              << " solves\n"
+              << "  tiles written " << p["tiles_written"].get<int64_t>() << " (overviews "
+              << p["overview_tiles_written"].get<int64_t>() << "), publishes "
+              << p["publishes"].get<int64_t>() << " (overview updates "
+              << p["overview_updates"].get<int64_t>() << ", of them early "
+              << p["overview_updates_early"].get<int64_t>() << ")\n";
   }
 
   if (!compare.empty()) {

@@ -29,6 +29,13 @@
 
 namespace irmosaic {
 
+// Level-0 tiles that may wait for a deferred overview update, per cached tile: they wait halved
+// (a quarter of a tile's memory), so 4 per cached tile hold what the cache does. At 1 per
+// cached tile (until session 16) a 25 fps flight with re-renders passed the bound every ~0.75 s
+// and 38 of 40 overview updates in 30 s came early instead of every overview_interval_s
+// (docs/benchmarks.md, "Session 16").
+constexpr size_t kOwedPerCachedTile = 4;
+
 namespace fs = std::filesystem;
 using store::TileImage;
 using store::TileIndex;
@@ -525,14 +532,17 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     --dirty_count;
   }
   // Overviews and frames.gpkg at most every overview_interval_s, and always when closing, or
-  // sooner when more than max_cached_tiles level-0 tiles would wait for them: the images they
-  // wait with stay in memory (a burst of re-renders, e.g. the final solve's, touches hundreds).
+  // sooner when more than kOwedPerCachedTile x max_cached_tiles level-0 tiles would wait for
+  // them: the images they wait with stay in memory (a burst of re-renders, e.g. the final
+  // solve's, touches hundreds), halved, so each takes a quarter of a cached tile's memory.
   size_t owed = overview_owed.size();
   for (const auto& [index, image] : level0) owed += overview_owed.count(index) ? 0 : 1;
-  const bool secondary = closing || options.overview_interval_s <= 0.0 ||
-                         owed > options.max_cached_tiles ||
-                         std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
-                             options.overview_interval_s;
+  const bool due = closing || options.overview_interval_s <= 0.0 ||
+                   std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
+                       options.overview_interval_s;
+  const bool secondary = due || owed > kOwedPerCachedTile * options.max_cached_tiles;
+  stats.overview_updates += secondary ? 1 : 0;
+  stats.overview_updates_early += secondary && !due ? 1 : 0;
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
   secondary_owed = !secondary;

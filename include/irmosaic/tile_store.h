@@ -42,13 +42,14 @@ struct TileStoreOptions {
   int compression_level = 1;  // ZSTD 1..22 / DEFLATE 1..9; low levels keep the writer fast.
   int overview_levels = -1;   // Overview levels above level 0; -1: grow with the extent.
   // Overviews and frames.gpkg are brought up to date at most this often, seconds (0: on
-  // every publish), or sooner when more than max_cached_tiles level-0 tiles wait for them
-  // (their images wait in memory); level-0 tiles and the index are published every time, and
-  // Close() brings everything up to date. Zoomed-out views may lag by this much; the writer's work
-  // per publish no longer includes the overview pyramid and the growing frames.gpkg.
+  // every publish), or sooner when more than 4 x max_cached_tiles level-0 tiles wait for them
+  // (their images wait in memory, halved: a quarter of a tile each); level-0 tiles and the index
+  // are published every time, and Close() brings everything up to date. Zoomed-out views may lag by
+  // this much; the writer's work per publish no longer includes the overview pyramid and the
+  // growing frames.gpkg.
   double overview_interval_s = 0.0;
   // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
-  // early when more tiles than this wait for them.
+  // early when more than 4 times this many tiles wait for them (halved).
   size_t max_cached_tiles = 64;
   bool durable = false;  // fsync each file before its rename (power-loss safety).
   int writer_nice = 5;   // Writer thread's nice increment (0: same priority as the caller).
@@ -155,8 +156,13 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t overview_tiles_written = 0;  // Of those: overview tiles (levels above 0).
     int64_t bytes_written = 0;           // Bytes of tile files written.
     int64_t publishes = 0;               // Generations published by this process.
-    int64_t tile_reloads = 0;            // Tiles read back from disk after leaving memory.
-    int64_t overview_reads = 0;          // Overview tiles read from disk to update them.
+    // Of those: publishes that brought the overviews (and frames.gpkg) up to date, by the
+    // clock (overview_interval_s) or early, when the level-0 tiles owed to them passed the
+    // bound (overview_owed_early).
+    int64_t overview_updates = 0;
+    int64_t overview_updates_early = 0;
+    int64_t tile_reloads = 0;    // Tiles read back from disk after leaving memory.
+    int64_t overview_reads = 0;  // Overview tiles read from disk to update them.
     int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
     double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
@@ -168,7 +174,7 @@ class IRMOSAIC_EXPORT TileStore {
     double publish_max_ms = 0.0;    // ... worst.
     size_t cached_tiles = 0;        // Level-0 tiles in memory now.
     // Level-0 tiles whose images wait in memory for the next overview update (at most
-    // max_cached_tiles after each publish).
+    // 4 x max_cached_tiles after each publish, each halved).
     size_t overview_owed_tiles = 0;
     size_t tiles_on_disk = 0;  // Level-0 tiles in the store.
   };
