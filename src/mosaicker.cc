@@ -473,7 +473,13 @@ class Mosaicker::Impl : public MosaicSink {
     // seconds: the newest frames waited for it (the last frames of a 25 fps run reached the
     // disk 5-6 s after they arrived instead of 0.3-0.5 s; docs/benchmarks.md, "Session 16").
     if (store_ && !replay_ && !pending_.empty()) {
-      const int64_t generation = RequestPublishQuiet();
+      // The resume record stays the last one published: a run killed during the final solve
+      // resumes as one killed before Finish (it pushes the unrecorded frames again), not from
+      // a state no run killed earlier passes through.
+      const int64_t generation = store_->RequestPublish();
+      for (auto& p : pending_) {
+        if (p.second == 0) p.second = generation;
+      }
       try {
         store_->WaitPublished(generation);
       } catch (const OutputError&) {

@@ -92,11 +92,14 @@ struct FusionOptions {
   int images_in_memory = 0;
   std::string spill_directory;
   int solve_every_frames = 8;  // A window solve starts after this many new frames.
-  // The optimizer thread's nice increment (0..19; 0: the caller's priority). Its solves and
-  // re-renders then take the CPU that placing new frames (the caller) and the store's writer
-  // (nice 5) leave, instead of an equal share: on a machine too busy for all three, new
-  // frames keep reaching the disk and the solves come less often (docs/fusion.md, "Priorities").
-  int optimizer_nice = 10;
+  // The optimizer thread's nice increment (0..19; 0: the caller's priority). Above 0 its solves
+  // and re-renders take the CPU that placing new frames (the caller) and the store's writer
+  // (nice 5) leave, instead of an equal share: at 25 fps on 2 cores new frames reach the disk
+  // sooner (docs/benchmarks.md, "Session 16"). 0 by default: at 10 the solves start later and
+  // less regularly, and a run resumed after kill -9 then differed from an uninterrupted one by
+  // up to 1.5 px in 2 of ~60 kills of the fault campaign (bound 0.5 px; docs/fusion.md,
+  // "Priorities").
+  int optimizer_nice = 0;
   int max_neighbours = 2;  // Registrations per new frame (previous + best other).
   // Pairs of a new frame registered at once, on that many threads (the caller's and helpers);
   // above 1 the registrar is called concurrently and must be thread-safe. The results and

@@ -65,8 +65,8 @@ struct MosaickerOptions {
   bool planned_extent = true;
   // Pairs of a new frame registered at once (FusionOptions::registration_threads, which this
   // replaces): 2 registers a frame to its two neighbours on two threads, the same placements.
-  // 2 by default since session 16: with the optimizer yielding (FusionOptions::optimizer_nice)
-  // it is what lets the caller take frames at 25 per second on 2 cores (one thread needs
+  // 2 by default since session 16: it is what let the caller take frames at 25 per second on
+  // 2 cores in the measurements (with FusionOptions::optimizer_nice 10; one thread needs
   // ~35 CPU ms a frame, at the sensor's 40 ms interval, and fell seconds behind), for ~30 MiB
   // more peak memory (docs/benchmarks.md, "Session 16"). 1: one pair after the other.
   int registration_threads = 2;

@@ -328,9 +328,9 @@ def test_invalid_tile_size_is_refused_with_its_name(tmp_path, flight):
 def test_background_priorities_are_options_checked_by_name(tmp_path):
     options = irmosaic.MosaickerOptions(str(tmp_path / "p.irmosaic"))
     assert options.writer_nice == 5
-    assert options.fusion.optimizer_nice == 10
+    assert options.fusion.optimizer_nice == 0
     assert options.fusion.max_output_backlog_s == 0.25
-    options.fusion.optimizer_nice = 0
+    options.fusion.optimizer_nice = 10
     options.fusion.max_output_backlog_s = 0.0
     options.writer_nice = 0
     options.validate()
