@@ -455,10 +455,11 @@ class Mosaicker::Impl : public MosaicSink {
     NotifyPublished();
   }
 
-  // Returns the generation requested (0 without a store).
-  int64_t RequestPublishQuiet() {
+  // Returns the generation requested (0 without a store). `update_resume_record` false keeps
+  // the resume record of the last publish.
+  int64_t RequestPublishQuiet(bool update_resume_record = true) {
     if (!store_) return 0;
-    store_->SetApplicationState(ApplicationState());
+    if (update_resume_record) store_->SetApplicationState(ApplicationState());
     const int64_t generation = store_->RequestPublish();
     for (auto& p : pending_) {
       if (p.second == 0) p.second = generation;
@@ -476,10 +477,7 @@ class Mosaicker::Impl : public MosaicSink {
       // The resume record stays the last one published: a run killed during the final solve
       // resumes as one killed before Finish (it pushes the unrecorded frames again), not from
       // a state no run killed earlier passes through.
-      const int64_t generation = store_->RequestPublish();
-      for (auto& p : pending_) {
-        if (p.second == 0) p.second = generation;
-      }
+      const int64_t generation = RequestPublishQuiet(false);
       try {
         store_->WaitPublished(generation);
       } catch (const OutputError&) {
