@@ -121,12 +121,14 @@ struct Tuning {
   int writer_nice = -1;
   int lsm_level = -1;  // MosaickerOptions::registration.fine.lsm_level.
   int heap_trim_interval_frames = -1;
+  int tune_heap = -1;  // MosaickerOptions::tune_heap (0 / 1; -1: the library's default).
   int max_cached_tiles = -1;
   int images_in_memory = -1;  // -1: the library's default.
   int ground_cache_mb = -1;   // The simulator's (the benchmark's input), not the pipeline's.
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
-  // not adopted: docs/benchmarks.md.
+  // not adopted: docs/benchmarks.md. Takes effect with --heap-tuning 0 only: the Mosaicker's
+  // own tuning (MosaickerOptions::tune_heap) sets the threshold when it is made.
   int64_t mmap_threshold = 0;
   // OpenCV's worker threads (cv::setNumThreads) for the whole process: the warps and filters of
   // every stage split over them. 2, the target machine's cores, by default.
@@ -274,6 +276,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.heap_trim_interval_frames >= 0) {
     options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
   }
+  if (g_tuning.tune_heap >= 0) options.tune_heap = g_tuning.tune_heap != 0;
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
@@ -448,6 +451,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"solve_every_frames", options.fusion.solve_every_frames},
             {"registration_threads", options.registration_threads},
             {"heap_trim_interval_frames", options.heap_trim_interval_frames},
+            {"tune_heap", options.tune_heap},
             {"max_cached_tiles", options.max_cached_tiles},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
@@ -589,6 +593,8 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    store_root + "/child_store",
                                    "--mmap-threshold",
                                    std::to_string(g_tuning.mmap_threshold),
+                                   "--heap-tuning",
+                                   std::to_string(g_tuning.tune_heap),
                                    "--cv-threads",
                                    std::to_string(g_tuning.cv_threads)};
   std::vector<char*> argv;
@@ -717,6 +723,8 @@ int main(int argc, char** argv) {
       g_tuning.writer_nice = std::stoi(value());
     } else if (a == "--lsm-level") {
       g_tuning.lsm_level = std::stoi(value());
+    } else if (a == "--heap-tuning") {
+      g_tuning.tune_heap = std::stoi(value());
     } else if (a == "--heap-trim-every") {
       g_tuning.heap_trim_interval_frames = std::stoi(value());
     } else if (a == "--max-cached-tiles") {
@@ -741,7 +749,8 @@ int main(int argc, char** argv) {
                    "[--window N] [--solve-every N] [--registration-threads N] [--lsm-level N] "
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--overview-interval S] [--tile-size N] "
-                   "[--heap-trim-every N] [--max-cached-tiles N] [--images-in-memory N] "
+                   "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
+                   "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
                    "[--cv-threads N] [--malloc-info DIR]\n";

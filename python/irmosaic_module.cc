@@ -342,6 +342,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("planned_extent", &MosaickerOptions::planned_extent)
       .def_readwrite("registration_threads", &MosaickerOptions::registration_threads)
       .def_readwrite("heap_trim_interval_frames", &MosaickerOptions::heap_trim_interval_frames)
+      .def_readwrite("tune_heap", &MosaickerOptions::tune_heap)
       .def_readwrite("max_cached_tiles", &MosaickerOptions::max_cached_tiles)
       .def_readwrite("writer_nice", &MosaickerOptions::writer_nice)
       .def_readwrite("images_in_memory", &MosaickerOptions::images_in_memory)

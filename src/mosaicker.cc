@@ -299,6 +299,13 @@ class Mosaicker::Impl : public MosaicSink {
     if (!options_.IsValid(&error)) {
       throw InputError({"options", 0, 0, ""}, error, "correct the option");
     }
+#if defined(__GLIBC__)
+    if (options_.tune_heap) {
+      // MosaickerOptions::tune_heap. 32 MiB is glibc's largest mmap threshold on 64 bits.
+      mallopt(M_MMAP_THRESHOLD, 32 << 20);
+      mallopt(M_TRIM_THRESHOLD, 1 << 30);
+    }
+#endif
     if (pos_.empty() && (std::isnan(options_.origin_lat_deg) ||
                          std::isnan(options_.origin_lon_deg) || options_.gsd_m == 0.0)) {
       throw InputError({"options", 0, 0, "origin_lat_deg"},

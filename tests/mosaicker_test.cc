@@ -6,8 +6,11 @@
 
 #include <gdal_priv.h>
 #include <gtest/gtest.h>
+#include <malloc.h>
 
 #include <atomic>
+#include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -222,6 +225,33 @@ TEST(MosaickerApiTest, AnEmptyPosTrackNeedsTheOriginAndGsd) {
   options.gsd_m = 0.3;
   EXPECT_THROW(Mosaicker(options, sim.camera(), PosTrack()), InputError);
 }
+
+// Under a sanitizer, its own allocator replaces glibc's, whose figures the test reads.
+#if defined(__GLIBC__) && !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
+// MosaickerOptions::tune_heap: once a Mosaicker is made, a 24 MiB buffer (an image-sized one
+// is a few MiB; glibc's own threshold starts at 128 KiB) comes from the heap, not a mapping of
+// its own, and freeing it leaves the heap as large as it was (no trim on free: the next buffer
+// does not fault its pages in again). The tuning is process-wide and stays for the process.
+TEST(MosaickerApiTest, TheTunedHeapKeepsLargeBuffersAndDoesNotTrimOnFree) {
+  FlightSimulator sim(Flight(2));
+  MosaickerOptions options;
+  options.store_path = TempStore("tuned_heap");
+  ASSERT_TRUE(options.tune_heap);  // The default.
+  Mosaicker mosaicker(options, sim.camera(), sim.MeasuredPos());
+  constexpr size_t kBytes = 24u << 20;
+  const struct mallinfo2 before = mallinfo2();
+  char* volatile buffer = static_cast<char*>(std::malloc(kBytes));
+  ASSERT_NE(buffer, nullptr);
+  std::memset(buffer, 1, kBytes);
+  const struct mallinfo2 held = mallinfo2();
+  EXPECT_LT(held.hblkhd, before.hblkhd + kBytes / 2) << "the buffer got a mapping of its own";
+  EXPECT_GE(held.arena, before.arena + kBytes / 2) << "the buffer did not come from the heap";
+  std::free(buffer);
+  const struct mallinfo2 after = mallinfo2();
+  EXPECT_GE(after.arena, held.arena) << "the heap was trimmed on free";
+  EXPECT_GE(after.fordblks, before.fordblks + kBytes / 2) << "the freed buffer left the heap";
+}
+#endif
 
 // Poses given with each frame (a live POS stream, no track) place frames as the track does.
 TEST(MosaickerApiTest, PosesPushedDirectlyPlaceFramesAsTheTrackDoes) {

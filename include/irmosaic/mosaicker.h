@@ -75,6 +75,15 @@ struct MosaickerOptions {
   // memory the heap otherwise holds on to and grows over a long flight: docs/benchmarks.md,
   // "Session 8"). 0: never. The call is process-wide.
   int heap_trim_interval_frames = 250;
+  // Sets the C library's heap for a long stream when the Mosaicker is made (glibc mallopt,
+  // process-wide): buffers under 32 MiB come from the heap instead of mappings of their own,
+  // and a free never hands memory back by itself (M_TRIM_THRESHOLD 1 GiB); the periodic trim
+  // above does, every heap_trim_interval_frames frames. glibc's default returns the top of a
+  // thread's heap on many frees, and the next image-sized buffer faults its pages back in, one
+  // per 4 KiB: 1.7 million page faults in 3000 frames, 0.43 million tuned; pipeline CPU
+  // 72.7 -> 60.2 ms/frame, peak RSS 695 -> 734 MiB (docs/benchmarks.md, "Session 17"). With
+  // heap_trim_interval_frames 0 the heap keeps what it ever held free: turn this off too.
+  bool tune_heap = true;
   // The store's memory bound (TileStoreOptions::max_cached_tiles): clean level-0 tiles kept in
   // memory, and twice as many may wait for the writer before painting waits. Each tile is
   // tile_size^2 x (sample size + 1) bytes (768 KiB at 512 and 16 bits); fewer means more tiles

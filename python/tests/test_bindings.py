@@ -328,6 +328,7 @@ def test_invalid_tile_size_is_refused_with_its_name(tmp_path, flight):
 def test_background_priorities_are_options_checked_by_name(tmp_path):
     options = irmosaic.MosaickerOptions(str(tmp_path / "p.irmosaic"))
     assert options.writer_nice == 5
+    assert options.tune_heap is True
     assert options.fusion.optimizer_nice == 0
     assert options.fusion.max_output_backlog_s == 0.25
     options.fusion.optimizer_nice = 10
