@@ -119,6 +119,8 @@ int main(int argc, char** argv) {
     if (a == "--tie-noise") g_tie_noise_px = std::stod(argv[i + 1]);
     if (a == "--seed") seed = static_cast<uint32_t>(std::stoul(argv[i + 1]));
     if (a == "--window") options.window_frames = std::stoi(argv[i + 1]);
+    if (a == "--short-window") options.short_window_frames = std::stoi(argv[i + 1]);
+    if (a == "--full-every") options.full_window_every = std::stoi(argv[i + 1]);
     if (a == "--solve-every") options.solve_every_frames = std::stoi(argv[i + 1]);
     if (a == "--max-ties") options.max_ties_per_pair = std::stoi(argv[i + 1]);
     if (a == "--skip-without") skip_without = std::stoi(argv[i + 1]) != 0;

@@ -72,6 +72,10 @@ int RunRun(int argc, char** argv) {
   args.Option("--tile-size", "tile size, pixels", "512", "N");
   args.Option("--compression", "tile compression: ZSTD, DEFLATE, LZW or NONE", "ZSTD", "NAME");
   args.Option("--window", "frames in the global optimization window", "300", "N");
+  args.Option("--short-window",
+              "frames most background solves refine; one solve in 4, and the last, refine the "
+              "whole window (0: every solve does)",
+              "100", "N");
   args.Flag("--no-optimize", "real-time mapping only (no global optimization)");
   args.Flag("--no-planned-extent",
             "do not size the store to the flight's POS footprints ahead (the GDAL plug-in, and "
@@ -124,6 +128,7 @@ int RunRun(int argc, char** argv) {
   options.tile_size = args.GetInt("--tile-size");
   options.compression = args.Get("--compression");
   options.fusion.window_frames = args.GetInt("--window");
+  options.fusion.short_window_frames = args.GetInt("--short-window");
   options.fusion.optimize = !args.Has("--no-optimize");
   options.planned_extent = !args.Has("--no-planned-extent");
   options.registration_threads = args.GetInt("--registration-threads");

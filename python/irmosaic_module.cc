@@ -298,6 +298,8 @@ PYBIND11_MODULE(irmosaic, m) {
       .def(py::init<>())
       .def_readwrite("window_frames", &FusionOptions::window_frames)
       .def_readwrite("solve_every_frames", &FusionOptions::solve_every_frames)
+      .def_readwrite("short_window_frames", &FusionOptions::short_window_frames)
+      .def_readwrite("full_window_every", &FusionOptions::full_window_every)
       .def_readwrite("max_neighbours", &FusionOptions::max_neighbours)
       .def_readwrite("max_ties_per_pair", &FusionOptions::max_ties_per_pair)
       .def_readwrite("min_overlap_fraction", &FusionOptions::min_overlap_fraction)

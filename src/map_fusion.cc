@@ -88,6 +88,8 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (candidate_frames < 0) return fail("candidate_frames must be >= 0 (0: window_frames)");
   if (images_in_memory < 0) return fail("images_in_memory must be >= 0 (0: all)");
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
+  if (short_window_frames < 0) return fail("short_window_frames must be >= 0 (0: off)");
+  if (full_window_every < 1) return fail("full_window_every must be at least 1");
   if (optimizer_nice < 0 || optimizer_nice > 19) {
     return fail("optimizer_nice must be in 0..19");
   }
@@ -780,6 +782,21 @@ class MapFusion::Impl {
     if (optimizer_.joinable()) optimizer_.join();
   }
 
+  // Frames a solve ending at push-order position `last_slot` refines. A pure function of the
+  // position, so a resumed run's replayed solve refines what the interrupted one did: the whole
+  // window when the position falls in the first solve_every_frames of each run of
+  // full_window_every x solve_every_frames frames (one background solve in full_window_every
+  // when the optimizer keeps up; the next such run when it lags), and the final solve.
+  size_t SolveSpan(size_t last_slot, bool final_solve) const {
+    const size_t window = static_cast<size_t>(options_.window_frames);
+    const size_t every = static_cast<size_t>(options_.solve_every_frames);
+    const size_t period = static_cast<size_t>(options_.full_window_every) * every;
+    if (final_solve || options_.short_window_frames == 0 || last_slot % period < every) {
+      return window;
+    }
+    return std::min(window, static_cast<size_t>(options_.short_window_frames));
+  }
+
   void OptimizerLoop() {
     // Named so that top -H, perf and gdb attribute its CPU (15 characters at most).
     pthread_setname_np(pthread_self(), "irm-optimizer");
@@ -806,6 +823,7 @@ class MapFusion::Impl {
     std::vector<Pair> pairs;
     std::map<size_t, FramePlacement> current;  // slot -> placement snapshot
     std::map<size_t, Eigen::Matrix<double, 10, 10>> prior_info;
+    size_t span = 0;  // Frames refined (SolveSpan).
     {
       std::lock_guard<std::mutex> lock(mu_);
       size_t end = window_.size();
@@ -814,10 +832,11 @@ class MapFusion::Impl {
         while (end < window_.size() && window_[end]->slot <= last_slot) ++end;
       }
       if (end < 2) return;
-      // The last window_frames frames, extended back (up to kMaxHeldWindows times that) to frames
-      // no solve has refined yet, so a foreground running ahead never freezes unrefined frames.
-      size_t first =
-          end > static_cast<size_t>(options_.window_frames) ? end - options_.window_frames : 0;
+      // The last window_frames frames (short_window_frames in most background solves), extended
+      // back (up to kMaxHeldWindows windows) to frames no solve has refined yet, so a foreground
+      // running ahead never freezes unrefined frames.
+      span = SolveSpan(window_[end - 1]->slot, final_solve);
+      size_t first = end > span ? end - span : 0;
       while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
              end - first < kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
         --first;
@@ -1030,6 +1049,7 @@ class MapFusion::Impl {
       }
       const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
       stats_.solves += 1;
+      if (span >= static_cast<size_t>(options_.window_frames)) stats_.full_solves += 1;
       stats_.last_solve_ms = ms;
       stats_.max_solve_ms = std::max(stats_.max_solve_ms, ms);
       stats_.total_solve_ms += ms;

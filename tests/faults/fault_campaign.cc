@@ -47,6 +47,9 @@ struct Config {
   // window before most kills and the resume must start from the placements the store recorded
   // (docs/reliability.md).
   int window = 16;
+  // --short-window: below --window, so that most solves refine part of the window (one in 4
+  // the whole of it) and a resume must replay which (docs/fusion.md, "Short and full solves").
+  int short_window = 8;
   uint64_t seed = 11;
 };
 
@@ -137,9 +140,10 @@ pid_t StartRun(const Config& config, const std::string& store, bool resume,
     const std::string frames = flight + "/frames.csv", pos = flight + "/pos.csv",
                       camera = flight + "/camera.json";
     const std::string window = std::to_string(config.window);
+    const std::string short_window = std::to_string(config.short_window);
     execl(config.cli.c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos", pos.c_str(),
           "--camera", camera.c_str(), "--out", store.c_str(), "--window", window.c_str(),
-          resume ? "--resume" : nullptr, nullptr);
+          "--short-window", short_window.c_str(), resume ? "--resume" : nullptr, nullptr);
     _exit(127);
   }
   return child;
@@ -212,8 +216,8 @@ int Main(const Config& config) {
     return 1;
   }
   const double run_s = Seconds(start);
-  std::printf("uninterrupted run: %d frames in %.2f s (--window %d)\n", config.frames, run_s,
-              config.window);
+  std::printf("uninterrupted run: %d frames in %.2f s (--window %d --short-window %d)\n",
+              config.frames, run_s, config.window, config.short_window);
 
   // 1. Kills at random moments over the whole run (startup, painting, the final publish).
   std::mt19937_64 random(config.seed);
@@ -352,6 +356,7 @@ int Main(const Config& config) {
                                    {"frames", config.frames},
                                    {"seed", config.seed},
                                    {"window", config.window},
+                                   {"short_window", config.short_window},
                                    {"uninterrupted_run_s", run_s},
                                    {"killed_mid_run", killed},
                                    {"finished_before_kill", finished_first},
@@ -395,6 +400,8 @@ int main(int argc, char** argv) {
       config.seed = std::stoull(value);
     else if (key == "--window")
       config.window = std::stoi(value);
+    else if (key == "--short-window")
+      config.short_window = std::stoi(value);
     else {
       std::cerr << "fault_campaign: unknown option " << key << "\n";
       return 2;
@@ -402,7 +409,8 @@ int main(int argc, char** argv) {
   }
   if (config.cli.empty() || config.plugin_dir.empty() || config.work.empty()) {
     std::cerr << "usage: fault_campaign --cli IRMOSAIC --plugin-dir DIR --work DIR [--runs 20] "
-                 "[--readers 4] [--frames 40] [--window 16] [--seed 11] [--json FILE]\n";
+                 "[--readers 4] [--frames 40] [--window 16] [--short-window 8] [--seed 11] "
+                 "[--json FILE]\n";
     return 2;
   }
   try {
