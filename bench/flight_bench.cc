@@ -8,7 +8,7 @@
 //                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
 //                [--ground-cache-mb N]
 //                [--lsm-level N]
-//                [--malloc-info DIR]
+//                [--malloc-info DIR] [--exit-before-finish]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
 // against freshness on disk, optimizer cost against accuracy) is measured on the same frames.
@@ -139,6 +139,9 @@ struct Tuning {
   // Folder for glibc's malloc_info XML at each checkpoint (free chunks by size, per arena):
   // where the free memory the heap keeps sits, for the memory creep of long runs. Empty: none.
   std::string malloc_info_dir;
+  // Leave the process right after the last Push, nothing freed, so that heaptrack's report of
+  // what was never freed is the live heap of a streaming run (compare two flight lengths).
+  bool exit_before_finish = false;
 };
 Tuning g_tuning;
 
@@ -371,6 +374,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     }
     const double foreground_s = Since(start);
     producer_cpu = producer.cpu_s();
+    if (g_tuning.exit_before_finish) {
+      std::cerr << "flight_bench: leaving before Finish() (--exit-before-finish)" << std::endl;
+      std::_Exit(0);
+    }
     const auto finish0 = Clock::now();
     mosaicker.Finish();
     const double finish_s = Since(finish0);
@@ -749,6 +756,8 @@ int main(int argc, char** argv) {
       g_tuning.ground_cache_mb = std::stoi(value());
     } else if (a == "--mmap-threshold") {
       g_tuning.mmap_threshold = std::stoll(value());
+    } else if (a == "--exit-before-finish") {
+      g_tuning.exit_before_finish = true;
     } else if (a == "--malloc-info") {
       g_tuning.malloc_info_dir = value();
       std::filesystem::create_directories(g_tuning.malloc_info_dir);
@@ -768,7 +777,7 @@ int main(int argc, char** argv) {
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
-                   "[--cv-threads N] [--malloc-info DIR]\n";
+                   "[--cv-threads N] [--malloc-info DIR] [--exit-before-finish]\n";
       return 2;
     }
   }

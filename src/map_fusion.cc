@@ -14,7 +14,6 @@
 #include <deque>
 #include <exception>
 #include <filesystem>
-#include <future>
 #include <map>
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
@@ -25,6 +24,7 @@
 
 #include "buffer_view.h"
 #include "fusion_cost.h"
+#include "helper_threads.h"
 #include "image_spill.h"
 #include "irmosaic/frame_geometry.h"
 #include "thread_priority.h"
@@ -147,6 +147,10 @@ class MapFusion::Impl {
         directory = std::filesystem::temp_directory_path(ignored).string();
       }
       spill_ = std::make_unique<ImageSpill>(directory);
+    }
+    if (options_.registration_threads > 1) {
+      registration_helpers_ = std::make_unique<HelperThreads>(
+          static_cast<size_t>(options_.registration_threads - 1), "irm-register");
     }
     if (options_.optimize) optimizer_ = std::thread([this] { OptimizerLoop(); });
   }
@@ -657,25 +661,9 @@ class MapFusion::Impl {
       return matches;
     }
     std::atomic<size_t> next{0};
-    auto work = [&] {
+    registration_helpers_->Run(threads - 1, [&] {
       for (size_t k = next++; k < scored.size(); k = next++) one(k);
-    };
-    std::vector<std::future<void>> helpers;
-    for (size_t t = 1; t < threads; ++t) helpers.push_back(std::async(std::launch::async, work));
-    std::exception_ptr failure;
-    try {
-      work();
-    } catch (...) {
-      failure = std::current_exception();
-    }
-    for (std::future<void>& helper : helpers) {
-      try {
-        helper.get();
-      } catch (...) {
-        if (!failure) failure = std::current_exception();
-      }
-    }
-    if (failure) std::rethrow_exception(failure);
+    });
     return matches;
   }
 
@@ -1244,6 +1232,9 @@ class MapFusion::Impl {
   std::condition_variable cv_;
   bool stop_ = false;
   std::thread optimizer_;
+  // Threads that register a new frame's other pairs beside the caller (registration_threads
+  // - 1 of them), started once: none when registration_threads is 1.
+  std::unique_ptr<HelperThreads> registration_helpers_;
   std::deque<std::shared_ptr<Held>> window_;
   std::deque<Pair> pairs_;
   // Every frame's placement, by slot: a deque, so an hour's ~90,000 grow in blocks instead of
