@@ -6,7 +6,8 @@
 // calling thread's cost per frame (Paint), the writer's work per frame (amortised), publish
 // latency, frame arrival -> published latency, and the store's size per frame. Prints a table and
 // writes JSON (--json FILE). Then the cost of publishing 25 new footprints into frames.gpkg
-// holding 1,000, 15,000 and 90,000 (an hour) records. --frames 0 runs only that part.
+// holding 1,000, 15,000 and 90,000 (an hour) records, and the CPU of the writer's unit of work on
+// one thread: one level-0 tile written, read back and halved. --frames 0 runs only those parts.
 //
 //   store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE] [--dir DIR]
 #include <unistd.h>
@@ -14,6 +15,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -26,6 +28,7 @@
 #include <thread>
 #include <vector>
 
+#include "../src/store_internal.h"
 #include "irmosaic/local_frame.h"
 #include "irmosaic/tile_store.h"
 
@@ -216,6 +219,51 @@ double FramesPublishMs(int existing, const fs::path& dir) {
   return Percentile(ms, 0.5);
 }
 
+double ThreadCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
+}
+
+// The writer's unit of work, one 512 x 512 UInt16 level-0 tile (cut from the ground, fully
+// covered), on this thread: written to its GeoTIFF (ZSTD 1, the default) and renamed, read back,
+// halved for the overview above. CPU ms per tile, the minimum over `rounds` rounds of `count`
+// operations each (the VM's timing noise).
+struct TileCost {
+  double write_ms = 0, read_ms = 0, halve_ms = 0;
+  int64_t bytes = 0;
+};
+
+TileCost MeasureTileCost(const cv::Mat& ground, int count, int rounds, const fs::path& dir) {
+  namespace st = irmosaic::store;
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  const irmosaic::LocalFrame frame(47.2, 8.5);
+  st::TileWriteSettings settings;
+  settings.crs_wkt = frame.CrsWkt();
+  const int size = 512;
+  st::TileImage tile = st::EmptyTile(size, irmosaic::PixelType::kUInt16);
+  ground(cv::Rect(1000, 1000, size, size)).copyTo(tile.data);
+  tile.alpha.setTo(255);
+  double gt[6];
+  st::TileGeoTransform(0.5, size, 0, {1, 2}, gt);
+  TileCost best{1e30, 1e30, 1e30, 0};
+  const fs::path path = dir / "tile.tif";
+  for (int round = 0; round < rounds; ++round) {
+    double t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) best.bytes = st::WriteTileAtomic(path, tile, gt, settings);
+    best.write_ms = std::min(best.write_ms, (ThreadCpuMs() - t0) / count);
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) st::ReadTile(path, size, irmosaic::PixelType::kUInt16);
+    best.read_ms = std::min(best.read_ms, (ThreadCpuMs() - t0) / count);
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) st::HalveTile(tile);
+    best.halve_ms = std::min(best.halve_ms, (ThreadCpuMs() - t0) / count);
+  }
+  fs::remove_all(dir);
+  return best;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -253,6 +301,7 @@ int main(int argc, char** argv) {
   for (int existing : {1000, 15000, 90000}) {  // 90,000: an hour at 25 fps.
     frames_cost.emplace_back(existing, FramesPublishMs(existing, dir / "frames"));
   }
+  const TileCost tile_cost = MeasureTileCost(ground, 40, 5, dir / "tile_cost");
   fs::remove_all(dir);
 
   std::cout << "store_bench: " << frames << " frames of 640x512 UInt16 at " << fps
@@ -301,8 +350,16 @@ int main(int argc, char** argv) {
               << " already in frames.gpkg: " << std::setprecision(1) << ms << " ms (median)\n";
     frames_json.push_back({{"existing_records", existing}, {"publish_ms_median", ms}});
   }
+  std::cout << "one 512 x 512 UInt16 tile (ZSTD 1), CPU ms on one thread: write "
+            << std::setprecision(2) << tile_cost.write_ms << " (" << tile_cost.bytes / 1024
+            << " KiB), read back " << tile_cost.read_ms << ", halve " << tile_cost.halve_ms
+            << " (minimum of 5 rounds of 40)\n";
   if (!json_path.empty()) {
     std::ofstream(json_path) << nlohmann::json{{"benchmark", "store_bench"},
+                                               {"tile_write_cpu_ms", tile_cost.write_ms},
+                                               {"tile_read_cpu_ms", tile_cost.read_ms},
+                                               {"tile_halve_cpu_ms", tile_cost.halve_ms},
+                                               {"tile_bytes", tile_cost.bytes},
                                                {"frames", frames},
                                                {"fps", fps},
                                                {"publish_every", publish_every},
