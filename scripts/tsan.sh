@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Builds the threaded tests with ThreadSanitizer and runs them (map fusion's optimizer thread,
-# the store's writer thread against a painter). Third-party code is suppressed where TSan
+# the helper threads that register a frame's pairs, the store's writer thread against a painter). Third-party code is suppressed where TSan
 # cannot see its synchronisation (tests/tsan.supp says why).
 # Usage: scripts/tsan.sh [full]   (build folder: build-tsan/)
 #   full: also the whole Mosaicker (mosaicker_test, ~7 min under TSan on 2 cores; not in CI).
@@ -12,11 +12,12 @@ build_dir=${BUILD_DIR:-build-tsan}
 # 62 s (session 6, docs/reliability.md).
 cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="-O1 -g1" -DIRMOSAIC_TSAN=ON -DIRMOSAIC_BUILD_BENCH=OFF >/dev/null
-targets=(map_fusion_test tile_store_test)
+targets=(map_fusion_test helper_threads_test tile_store_test)
 [[ "${1:-}" == full ]] && targets+=(mosaicker_test)
 cmake --build "$build_dir" -j2 --target "${targets[@]}"
 export TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp halt_on_error=1"
 "$build_dir/tests/map_fusion_test"
+"$build_dir/tests/helper_threads_test"
 # The painter against the writer's publishes (copy-on-write tiles); the other store tests fork
 # readers and kill -9 writers, which TSan does not follow.
 "$build_dir/tests/tile_store_test" --gtest_filter='TileStoreTest.PaintingDuringPublishes*'
