@@ -97,8 +97,9 @@ struct FusionOptions {
   // full_window_every, which refines the whole window, as the final solve does. 0: every solve
   // refines the whole window. The older frames have converged, so the placements hardly change
   // (ideal registrar, 2000 frames: mean 0.80 -> 0.79 px; a simulated flight end to end, 1000
-  // frames: 1.334 -> 1.346 px), for 60 % less CPU per solve, which goes to keeping the mosaic
-  // on disk up with the solution and to new frames (docs/benchmarks.md, "Session 17").
+  // frames: 1.334 -> 1.346 px), for 68 % less CPU per solve with the ideal registrar (227 -> 72 ms;
+  // 41 % end to end), which goes to keeping the mosaic on disk up with the solution and to new
+  // frames (docs/benchmarks.md, "Session 17").
   int short_window_frames = 100;
   int full_window_every = 4;
   // The optimizer thread's nice increment (0..19; 0: the caller's priority). Above 0 its solves
