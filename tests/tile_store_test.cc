@@ -715,6 +715,44 @@ TEST(TileStoreTest, TilesUnderZeroWeightsAreNotTouched) {
   store->Close();
 }
 
+// Overview VRTs of extents the mosaic outgrew stay an hour for readers holding an older
+// mosaic.vrt, then go: at the first overview update and at Close's publish (in between at most
+// once a minute, since listing the overview folders costs more as the flight grows); the VRTs the
+// manifest names and the tiles stay.
+TEST(TileStoreTest, StaleOverviewVrtsGoAfterAnHourTheCurrentOnesStay) {
+  const fs::path dir = FreshDir("stale_vrts") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  const auto make_vrt = [&](const std::string& name, std::chrono::minutes age) {
+    const fs::path path = dir / "tiles/1" / name;
+    fs::create_directories(path.parent_path());
+    std::ofstream(path) << "<VRTDataset/>\n";
+    fs::last_write_time(path, fs::file_time_type::clock::now() - age);
+    return path;
+  };
+  const fs::path old_one = make_vrt("overview_r0_c0_1x1.vrt", std::chrono::minutes(90));
+  const fs::path recent = make_vrt("overview_r0_c0_1x2.vrt", std::chrono::minutes(10));
+  PaintSquare(store.get(), {0, 0}, 192, 100);  // 3 x 3 tiles: two overview levels.
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_FALSE(fs::exists(old_one)) << "a VRT unused for an hour stayed";
+  EXPECT_TRUE(fs::exists(recent)) << "a VRT a reader may still open went";
+  const std::vector<std::string> current =
+      nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["overview_vrts"];
+  ASSERT_FALSE(current.empty());
+  for (const std::string& vrt : current) {
+    EXPECT_TRUE(fs::exists(dir / vrt)) << vrt;
+    // Stale by age, but named by the manifest: it stays.
+    fs::last_write_time(dir / vrt, fs::file_time_type::clock::now() - std::chrono::minutes(90));
+  }
+  const fs::path later = make_vrt("overview_r0_c0_2x2.vrt", std::chrono::minutes(90));
+  PaintSquare(store.get(), {0, 0}, 64, 120);  // Within the minute: only Close's publish cleans.
+  store->Close();
+  EXPECT_FALSE(fs::exists(later)) << "Close left a VRT unused for an hour";
+  for (const std::string& vrt : current) EXPECT_TRUE(fs::exists(dir / vrt)) << vrt;
+  EXPECT_TRUE(fs::exists(dir / "tiles/1/0_0.tif"));
+}
+
 // Deferred overviews keep the latest image of every tile they owe: a burst of painting (the
 // final solve's re-renders) must not hold more than max_cached_tiles of them, whatever the
 // interval; the overviews then follow early.
