@@ -570,6 +570,17 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::string error;
   std::vector<TileIndex> snapshot;
   for (const auto& [index, image] : level0) snapshot.push_back(index);
+  // The next manifest takes the published one's tile sets instead of a copy of them (a copy per
+  // publish cost as much as the tiles flown, ~10^5 an hour) and notes what it adds; a failed
+  // publish takes that back, so the published manifest stays as it was.
+  store::Manifest next;
+  bool sets_taken = false;
+  std::vector<std::pair<size_t, TileIndex>> added;
+  std::vector<TileSet> dropped;  // Levels a publish removed (none while the extent only grows).
+  const size_t levels_before = manifest.levels.size();
+  const auto add = [&](size_t level, const TileIndex& index) {
+    if (next.levels[level].insert(index).second) added.emplace_back(level, index);
+  };
   try {
     // 2. Level-0 tiles, each to a temporary name then renamed.
     double gt[6];
@@ -584,9 +595,23 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       changed.notify_all();
       lock.unlock();
     }
-    // Work on a copy: the published manifest changes only once the index is written.
-    store::Manifest next = manifest;
-    for (const auto& [index, image] : level0) next.levels[0].insert(index);
+    // The published manifest changes only once the index is written.
+    std::vector<TileSet> sets;
+    sets.swap(manifest.levels);
+    try {
+      next = manifest;  // All but the sets.
+    } catch (...) {
+      manifest.levels.swap(sets);
+      throw;
+    }
+    next.levels.swap(sets);
+    sets_taken = true;
+    for (const auto& [index, image] : level0) add(0, index);
+    // Tiles a failed publish wrote are on disk but were never listed: listed now (they were
+    // left out of the index until painted again).
+    for (const TileIndex& index : propagate_pending) {
+      if (level0_on_disk.count(index)) add(0, index);
+    }
     // Level 1 needs each changed tile halved: done now, so the writer lets go of the painters'
     // buffers at once (a tile painted again needs no copy) and a deferred tile waits for the
     // next overview update at a quarter of its size.
@@ -619,6 +644,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
     const int old_levels = static_cast<int>(next.levels.size()) - 1;
     const int levels = secondary ? LevelsFor(next.levels[0]) : old_levels;
+    if (next.levels.size() > static_cast<size_t>(levels) + 1) {
+      dropped.assign(std::make_move_iterator(next.levels.begin() + levels + 1),
+                     std::make_move_iterator(next.levels.end()));
+    }
     next.levels.resize(levels + 1);
     // Halved children of the level being updated (writer-owned: no painter shares them).
     std::map<TileIndex, TileImage> children = std::move(halves);
@@ -638,7 +667,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       parents = UpdateOverviewLevel(level, children, &bytes, &tiles_written);
       children.clear();
       for (const auto& [index, image] : parents) {
-        next.levels[level].insert(index);
+        add(level, index);
         if (level < levels) children[index] = store::HalveTile(image, &Pools());
       }
     }
@@ -673,6 +702,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     WriteIndex(&next, generation);
     if (range_changed) WriteQlr(next);
     manifest = std::move(next);
+    sets_taken = false;
     if (secondary) {
       propagate_pending.clear();
       if (closing || !last_clean || Clock::now() - *last_clean >= kCleanInterval) {
@@ -687,6 +717,13 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     error = std::string("unexpected failure while publishing: ") + e.what();
   }
   if (!error.empty()) propagate_pending.insert(snapshot.begin(), snapshot.end());
+  if (sets_taken) {  // Failed: the tile sets go back as they were.
+    for (const auto& [level, index] : added) next.levels[level].erase(index);
+    next.levels.resize(levels_before - std::min(levels_before, dropped.size()));
+    for (TileSet& set : dropped) next.levels.push_back(std::move(set));
+    next.levels.resize(levels_before);
+    manifest.levels.swap(next.levels);
+  }
   const double busy_ms = MsSince(start);
   const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
 

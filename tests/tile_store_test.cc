@@ -715,6 +715,57 @@ TEST(TileStoreTest, TilesUnderZeroWeightsAreNotTouched) {
   store->Close();
 }
 
+// A publish that fails after it added its tiles to the next manifest (here: mosaic.vrt cannot
+// be replaced) leaves the published manifest as it was; the next publish lists every tile
+// painted, before, during and after the failure, at every level (the writer's manifest takes
+// the published tile sets instead of copying them, and gives back what a failure added).
+TEST(TileStoreTest, AFailedPublishTakesBackItsTilesAndTheNextListsThemAll) {
+  const fs::path dir = FreshDir("failed_index") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  const auto level_tiles = [&](size_t level) {
+    const nlohmann::json m = nlohmann::json::parse(std::ifstream(dir / "manifest.json"));
+    return m["levels"].size() > level ? manifest_json::LevelTiles(m["levels"][level])
+                                      : std::set<manifest_json::ManifestTile>{};
+  };
+  PaintSquare(store.get(), {0, 0}, 128, 100);  // Tiles (0..1, 0..1).
+  store->WaitPublished(store->RequestPublish());
+  const auto first = level_tiles(0);
+  ASSERT_EQ(first.size(), 4u);
+  fs::remove(dir / "mosaic.vrt");
+  fs::create_directories(dir / "mosaic.vrt" / "blocker");  // rename() onto it fails.
+  PaintSquare(store.get(), {256, 0}, 128, 110);  // Tiles (0..1, 4..5), then far away: (20, 20).
+  PaintSquare(store.get(), {1280, 1280}, 64, 120);
+  EXPECT_THROW(store->WaitPublished(store->RequestPublish()), OutputError);
+  EXPECT_EQ(level_tiles(0), first) << "the failed publish changed the published manifest";
+  fs::remove_all(dir / "mosaic.vrt");
+  PaintSquare(store.get(), {0, 256}, 64, 130);  // Tile (4, 0).
+  store->WaitPublished(store->RequestPublish());
+  store->Close();
+  std::set<manifest_json::ManifestTile> expected = first;
+  for (const manifest_json::ManifestTile& t :
+       std::set<manifest_json::ManifestTile>{{0, 4}, {0, 5}, {1, 4}, {1, 5}, {20, 20}, {4, 0}}) {
+    expected.insert(t);
+  }
+  EXPECT_EQ(level_tiles(0), expected);
+  // Each overview level holds the parents of the level below.
+  const size_t levels =
+      nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["levels"].size();
+  EXPECT_GE(levels, 3u);  // 21 x 21 tiles: overview levels (as many as 64-pixel tiles allow).
+  for (size_t level = 1; level < levels; ++level) {
+    std::set<manifest_json::ManifestTile> parents;
+    for (const auto& [row, col] : level_tiles(level - 1)) {
+      parents.insert(
+          {row >= 0 ? row / 2 : -((-row + 1) / 2), col >= 0 ? col / 2 : -((-col + 1) / 2)});
+    }
+    EXPECT_EQ(level_tiles(level), parents) << "level " << level;
+  }
+  GdalErrorCount errors;
+  const Raster all = ReadThroughGdal(dir / "mosaic.vrt", 0);
+  ASSERT_FALSE(all.data.empty()) << errors.last;
+}
+
 // Overview VRTs of extents the mosaic outgrew stay an hour for readers holding an older
 // mosaic.vrt, then go: at the first overview update and at Close's publish (in between at most
 // once a minute, since listing the overview folders costs more as the flight grows); the VRTs the
