@@ -7,7 +7,8 @@
 // latency, frame arrival -> published latency, and the store's size per frame. Prints a table and
 // writes JSON (--json FILE). Then the cost of publishing 25 new footprints into frames.gpkg
 // holding 1,000, 15,000 and 90,000 (an hour) records, and the CPU of the writer's unit of work on
-// one thread: one level-0 tile written, read back and halved. --frames 0 runs only those parts.
+// one thread: one level-0 tile written, read back and halved, and the writer's CPU for a publish
+// adding one tile to a store of 1,000 / 10,000 / 40,000 tiles. --frames 0 runs only those parts.
 //
 //   store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE] [--dir DIR]
 #include <unistd.h>
@@ -219,6 +220,43 @@ double FramesPublishMs(int existing, const fs::path& dir) {
   return Percentile(ms, 0.5);
 }
 
+// Writer CPU (ms) of a publish that adds one level-0 tile to a store already holding `existing`
+// ones: the part of a publish that grows with the flight (the index: manifest.json, the VRTs,
+// the writer's tile lists). 64-pixel Byte tiles so that a large store builds in seconds; overviews
+// by the clock, not due during the measured publishes. Median of 9.
+double IndexPublishMs(int existing, const fs::path& dir) {
+  fs::remove_all(dir);
+  const irmosaic::LocalFrame frame(47.2, 8.5);
+  irmosaic::TileStoreOptions options;
+  options.path = dir.string();
+  options.tile_size = 64;
+  options.pixel_type = irmosaic::PixelType::kByte;
+  options.overview_interval_s = 3600.0;
+  auto store = irmosaic::TileStore::Open(options, {47.2, 8.5, 0.5, frame.CrsWkt()});
+  const int per_row = 250;
+  const cv::Mat strip(64, 64 * per_row, CV_8U, cv::Scalar(100));
+  const cv::Mat strip_weight(strip.size(), CV_32F, cv::Scalar(1.0f));
+  for (int row = 0; row * per_row < existing; ++row) {
+    const int cols = std::min(per_row, existing - row * per_row);
+    store->Paint(strip(cv::Rect(0, 0, 64 * cols, 64)), strip_weight(cv::Rect(0, 0, 64 * cols, 64)),
+                 {0, 64 * row});
+    if (row % 8 == 7) store->WaitPublished(store->RequestPublish());
+  }
+  store->WaitPublished(store->RequestPublish());
+  const cv::Mat tile(64, 64, CV_8U, cv::Scalar(150));
+  const cv::Mat tile_weight(64, 64, CV_32F, cv::Scalar(1.0f));
+  std::vector<double> ms;
+  for (int k = 0; k < 9; ++k) {
+    store->Paint(tile, tile_weight, {-64 * (k + 1), -64});
+    const double before = store->stats().writer_cpu_ms;
+    store->WaitPublished(store->RequestPublish());
+    ms.push_back(store->stats().writer_cpu_ms - before);
+  }
+  store->Close();
+  fs::remove_all(dir);
+  return Percentile(ms, 0.5);
+}
+
 double ThreadCpuMs() {
   timespec ts{};
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
@@ -302,6 +340,10 @@ int main(int argc, char** argv) {
     frames_cost.emplace_back(existing, FramesPublishMs(existing, dir / "frames"));
   }
   const TileCost tile_cost = MeasureTileCost(ground, 40, 5, dir / "tile_cost");
+  std::vector<std::pair<int, double>> index_cost;
+  for (int existing : {1000, 10000, 40000}) {
+    index_cost.emplace_back(existing, IndexPublishMs(existing, dir / "index"));
+  }
   fs::remove_all(dir);
 
   std::cout << "store_bench: " << frames << " frames of 640x512 UInt16 at " << fps
@@ -354,8 +396,15 @@ int main(int argc, char** argv) {
             << std::setprecision(2) << tile_cost.write_ms << " (" << tile_cost.bytes / 1024
             << " KiB), read back " << tile_cost.read_ms << ", halve " << tile_cost.halve_ms
             << " (minimum of 5 rounds of 40)\n";
+  nlohmann::json index_json = nlohmann::json::array();
+  for (const auto& [existing, ms] : index_cost) {
+    std::cout << "writer CPU of a publish adding 1 tile to " << existing
+              << " level-0 tiles: " << std::setprecision(2) << ms << " ms (median of 9)\n";
+    index_json.push_back({{"existing_tiles", existing}, {"publish_writer_cpu_ms", ms}});
+  }
   if (!json_path.empty()) {
     std::ofstream(json_path) << nlohmann::json{{"benchmark", "store_bench"},
+                                               {"index_publish", index_json},
                                                {"tile_write_cpu_ms", tile_cost.write_ms},
                                                {"tile_read_cpu_ms", tile_cost.read_ms},
                                                {"tile_halve_cpu_ms", tile_cost.halve_ms},
