@@ -76,10 +76,11 @@ TEST(PosTest, MissingFileIsAnInputError) {
 }
 
 TEST(PosTest, InterpolatesPositionInEnuAndAttitudeBySlerp) {
-  const std::string path = WriteTemp(
-      "ok.csv", std::string("# comment line\n") +
-                    "time_s,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,yaw_deg,gimbal_roll_deg\n"
-                    "10.0,47.0,8.0,500,0,0,10,-20\n10.2,47.001,8.0,520,0,0,20,20\n");
+  const std::string path =
+      WriteTemp("ok.csv",
+                "# comment line\n"
+                "time_s,lat_deg,lon_deg,height_m,roll_deg,pitch_deg,yaw_deg,gimbal_roll_deg\n"
+                "10.0,47.0,8.0,500,0,0,10,-20\n10.2,47.001,8.0,520,0,0,20,20\n");
   const PosTrack track = PosTrack::LoadCsv(path);
   std::filesystem::remove(path);
   const PoseLookup mid = track.At(10.1);
