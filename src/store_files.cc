@@ -351,22 +351,7 @@ TileImage HalveTile(const TileImage& tile, TilePools* pools) {
 
 namespace {
 
-// One block's tiles (docs/store.md, "manifest.json"): a 16-bit mask per tile row of the block,
-// top row first, the block's first column the most significant bit.
-using BlockRows = std::array<uint16_t, kVrtBlockTiles>;
 constexpr char kHexDigits[] = "0123456789abcdef";
-
-// The blocks holding tiles of a level, each with its rows, in block order.
-std::map<BlockIndex, BlockRows> BlockBitmaps(const TileSet& tiles) {
-  std::map<BlockIndex, BlockRows> blocks;
-  for (const TileIndex& tile : tiles) {
-    const BlockIndex block = BlockOf(tile);
-    const int64_t row = tile.first - block.first * kVrtBlockTiles;
-    const int64_t col = tile.second - block.second * kVrtBlockTiles;
-    blocks[block][static_cast<size_t>(row)] |= static_cast<uint16_t>(0x8000u >> col);
-  }
-  return blocks;
-}
 
 // 64 lowercase hex digits, four per row: the bits in tile order, first tile first.
 std::string BitmapHex(const BlockRows& rows) {
@@ -390,7 +375,7 @@ std::string ManifestToJson(const Manifest& manifest) {
     // Blocks, not tiles: the manifest is rewritten at every publish, and a list of every tile
     // (~40 bytes each) made that cost grow with the flight (docs/store.md).
     json blocks = json::array();
-    for (const auto& [block, rows] : BlockBitmaps(manifest.levels[level])) {
+    for (const auto& [block, rows] : manifest.levels[level].blocks()) {
       blocks.push_back(json::array({block.first, block.second, BitmapHex(rows)}));
     }
     levels.push_back({{"level", level},
@@ -398,7 +383,7 @@ std::string ManifestToJson(const Manifest& manifest) {
                       {"path_pattern", "tiles/" + std::to_string(level) + "/{row}_{col}.tif"},
                       {"blocks", blocks}});
   }
-  const TileBounds bounds = BoundsOf(manifest.levels.empty() ? TileSet{} : manifest.levels[0]);
+  const TileBounds bounds = manifest.levels.empty() ? TileBounds{} : manifest.levels[0].bounds();
   const bool painted = !manifest.levels.empty() && !manifest.levels[0].empty();
   const double t = manifest.tile_size, gsd = manifest.georef.gsd_m;
   json j = {
@@ -511,8 +496,8 @@ void CheckManifestRanges(const Manifest& m, const fs::path& path) {
   }
   // Tile indices times the tile size must stay within int64 pixel arithmetic.
   constexpr int64_t kMaxTileIndex = int64_t{1} << 40;
-  for (const TileSet& level : m.levels) {
-    for (const TileIndex& tile : level) {
+  for (const LevelTiles& level : m.levels) {
+    for (const TileIndex& tile : level.tiles()) {
       if (tile.first < -kMaxTileIndex || tile.first > kMaxTileIndex ||
           tile.second < -kMaxTileIndex || tile.second > kMaxTileIndex) {
         refuse("levels", "tile index [" + std::to_string(tile.first) + ", " +
@@ -585,23 +570,20 @@ BlockIndex CheckBlock(const nlohmann::json& entry, const std::string& field, con
 
 // Inserts the tiles of a checked bitmap: bit i (digit i / 4, from its most significant bit) is
 // tile (16 block_row + i / 16, 16 block_col + i % 16) (docs/store.md).
-void InsertBlockTiles(const BlockIndex& block, const std::string& hex, TileSet* tiles) {
+void InsertBlockTiles(const BlockIndex& block, const std::string& hex, LevelTiles* tiles) {
+  BlockRows rows{};
   for (size_t digit = 0; digit < hex.size(); ++digit) {
-    const int value = HexDigitValue(hex[digit]);
-    for (int bit = 0; bit < 4; ++bit) {
-      if ((value & (8 >> bit)) == 0) continue;
-      const int64_t i = static_cast<int64_t>(4 * digit) + bit;
-      tiles->insert({block.first * kVrtBlockTiles + i / kVrtBlockTiles,
-                     block.second * kVrtBlockTiles + i % kVrtBlockTiles});
-    }
+    const auto value = static_cast<unsigned>(HexDigitValue(hex[digit]));
+    rows[digit / 4] = static_cast<uint16_t>(rows[digit / 4] | (value << (12 - 4 * (digit % 4))));
   }
+  tiles->InsertBlock(block, rows);
 }
 
 // The tiles of manifest level `l`: format 1 lists them ("tiles": [[row, col], ...]), format 2
 // lists blocks with a bitmap ("blocks"); a level holding the other format's list, or both, is
 // refused rather than half read.
-TileSet ReadLevelTiles(const nlohmann::json& level, size_t l, int64_t format_version,
-                       const fs::path& path, int64_t* tiles_total) {
+LevelTiles ReadLevelTiles(const nlohmann::json& level, size_t l, int64_t format_version,
+                          const fs::path& path, int64_t* tiles_total) {
   const std::string field = "levels[" + std::to_string(l) + "]";
   if (!level.is_object()) RefuseField(field, field + " is not an object", path);
   if (level.contains("tiles") && level.contains("blocks")) {
@@ -617,7 +599,7 @@ TileSet ReadLevelTiles(const nlohmann::json& level, size_t l, int64_t format_ver
   const nlohmann::json& list = level[key];
   if (!list.is_array())
     RefuseField(field + "." + key, field + "." + key + " is not an array", path);
-  TileSet tiles;
+  LevelTiles tiles;
   if (format_version >= 2) {
     // Every entry checked and counted before any tile is held: ~70 bytes of text name up to
     // 256 tiles, so a hostile manifest is refused before it costs memory.
@@ -733,19 +715,6 @@ Manifest ReadManifest(const fs::path& path) {
   }
 }
 
-TileBounds BoundsOf(const TileSet& tiles) {
-  if (tiles.empty()) return {};
-  TileBounds b{tiles.begin()->first, tiles.begin()->first + 1, tiles.begin()->second,
-               tiles.begin()->second + 1};
-  for (const TileIndex& t : tiles) {
-    b.row0 = std::min(b.row0, t.first);
-    b.row1 = std::max(b.row1, t.first + 1);
-    b.col0 = std::min(b.col0, t.second);
-    b.col1 = std::max(b.col1, t.second + 1);
-  }
-  return b;
-}
-
 BlockIndex BlockOf(const TileIndex& tile) {
   auto floor_div = [](int64_t v) {
     return v >= 0 ? v / kVrtBlockTiles : -((-v + kVrtBlockTiles - 1) / kVrtBlockTiles);
@@ -757,10 +726,96 @@ std::string BlockVrtName(const BlockIndex& block) {
   return "block_r" + std::to_string(block.first) + "_c" + std::to_string(block.second) + ".vrt";
 }
 
-std::map<BlockIndex, int64_t> BlockTileCounts(const TileSet& tiles) {
-  std::map<BlockIndex, int64_t> counts;
-  for (const TileIndex& tile : tiles) ++counts[BlockOf(tile)];
-  return counts;
+int TilesIn(const BlockRows& rows) {
+  int n = 0;
+  for (const uint16_t mask : rows) n += std::popcount(mask);
+  return n;
+}
+
+namespace {
+
+// Bit of tile `tile` in its block `block`: row index and column mask.
+std::pair<size_t, uint16_t> BitOf(const TileIndex& tile, const BlockIndex& block) {
+  const int64_t row = tile.first - block.first * kVrtBlockTiles;
+  const int64_t col = tile.second - block.second * kVrtBlockTiles;
+  return {static_cast<size_t>(row), static_cast<uint16_t>(0x8000u >> col)};
+}
+
+}  // namespace
+
+bool LevelTiles::insert(const TileIndex& tile) {
+  const BlockIndex block = BlockOf(tile);
+  const auto [row, bit] = BitOf(tile, block);
+  uint16_t& mask = blocks_[block][row];
+  if (mask & bit) return false;
+  mask = static_cast<uint16_t>(mask | bit);
+  ++size_;
+  return true;
+}
+
+bool LevelTiles::erase(const TileIndex& tile) {
+  const BlockIndex block = BlockOf(tile);
+  const auto it = blocks_.find(block);
+  if (it == blocks_.end()) return false;
+  const auto [row, bit] = BitOf(tile, block);
+  uint16_t& mask = it->second[row];
+  if (!(mask & bit)) return false;
+  mask = static_cast<uint16_t>(mask & ~bit);
+  --size_;
+  if (TilesIn(it->second) == 0) blocks_.erase(it);
+  return true;
+}
+
+bool LevelTiles::contains(const TileIndex& tile) const {
+  const BlockIndex block = BlockOf(tile);
+  const auto it = blocks_.find(block);
+  if (it == blocks_.end()) return false;
+  const auto [row, bit] = BitOf(tile, block);
+  return (it->second[row] & bit) != 0;
+}
+
+void LevelTiles::InsertBlock(const BlockIndex& block, const BlockRows& rows) {
+  if (TilesIn(rows) == 0) return;
+  BlockRows& held = blocks_[block];
+  for (size_t r = 0; r < held.size(); ++r) {
+    size_ += static_cast<size_t>(std::popcount(static_cast<uint16_t>(rows[r] & ~held[r])));
+    held[r] = static_cast<uint16_t>(held[r] | rows[r]);
+  }
+}
+
+std::vector<TileIndex> LevelTiles::tiles() const {
+  std::vector<TileIndex> out;
+  out.reserve(size_);
+  for (const auto& [block, rows] : blocks_) {
+    for (int64_t r = 0; r < kVrtBlockTiles; ++r) {
+      for (int64_t c = 0; c < kVrtBlockTiles; ++c) {
+        if (rows[static_cast<size_t>(r)] & (0x8000u >> c)) {
+          out.emplace_back(block.first * kVrtBlockTiles + r, block.second * kVrtBlockTiles + c);
+        }
+      }
+    }
+  }
+  return out;
+}
+
+TileBounds LevelTiles::bounds() const {
+  if (blocks_.empty()) return {};
+  TileBounds b{INT64_MAX, INT64_MIN, INT64_MAX, INT64_MIN};
+  for (const auto& [block, rows] : blocks_) {
+    uint16_t columns = 0;
+    for (int64_t r = 0; r < kVrtBlockTiles; ++r) {
+      const uint16_t mask = rows[static_cast<size_t>(r)];
+      if (!mask) continue;
+      columns = static_cast<uint16_t>(columns | mask);
+      b.row0 = std::min(b.row0, block.first * kVrtBlockTiles + r);
+      b.row1 = std::max(b.row1, block.first * kVrtBlockTiles + r + 1);
+    }
+    // Column c is bit 15 - c: the first column is the highest set bit, the last the lowest.
+    const int64_t first = std::countl_zero(columns), last = 15 - std::countr_zero(columns);
+    b.col0 = std::min(b.col0, block.second * kVrtBlockTiles + first);
+    b.col1 = std::max(b.col1, block.second * kVrtBlockTiles + last + 1);
+  }
+  return b;
 }
 
 namespace {
@@ -817,16 +872,17 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
   TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, level, first, gt);
   std::ostringstream xml;
   VrtHead(manifest, level, gt, side, side, &xml);
-  const TileSet& tiles = manifest.levels[level];
-  const auto begin = tiles.lower_bound({first.first, INT64_MIN});
-  const auto end = tiles.lower_bound({first.first + kVrtBlockTiles, INT64_MIN});
+  const auto& blocks = manifest.levels[level].blocks();
+  const auto found = blocks.find(block);
+  const BlockRows rows = found == blocks.end() ? BlockRows{} : found->second;
   for (int band = 1; band <= 2; ++band) {
     VrtBandHead(band, type, &xml);
-    for (auto it = begin; it != end; ++it) {
-      if (BlockOf(*it) != block) continue;
-      VrtSource(std::to_string(it->first) + "_" + std::to_string(it->second) + ".tif", band, type,
-                t, std::min<int64_t>(kBlockSize, t), (it->second - first.second) * t,
-                (it->first - first.first) * t, side, side, &xml);
+    for (int64_t r = 0; r < kVrtBlockTiles; ++r) {
+      for (int64_t c = 0; c < kVrtBlockTiles; ++c) {
+        if (!(rows[static_cast<size_t>(r)] & (0x8000u >> c))) continue;
+        VrtSource(std::to_string(first.first + r) + "_" + std::to_string(first.second + c) + ".tif",
+                  band, type, t, std::min<int64_t>(kBlockSize, t), c * t, r * t, side, side, &xml);
+      }
     }
     xml << "  </VRTRasterBand>\n";
   }
@@ -853,14 +909,14 @@ std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds&
   gt[5] *= static_cast<double>(scale);
   std::ostringstream xml;
   VrtHead(manifest, level, gt, width, height, &xml);
-  const std::map<BlockIndex, int64_t> blocks = BlockTileCounts(manifest.levels[level]);
+  const auto& blocks = manifest.levels[level].blocks();
   for (int band = 1; band <= 2; ++band) {
     VrtBandHead(band, type, &xml);
     for (const std::string& overview : overview_paths) {
       xml << "    <Overview><SourceFilename relativeToVRT=\"1\">" << XmlEscape(overview)
           << "</SourceFilename><SourceBand>" << band << "</SourceBand></Overview>\n";
     }
-    for (const auto& [block, count] : blocks) {
+    for (const auto& [block, rows] : blocks) {
       // Block origin in this level's pixels, relative to the VRT; clipped to the VRT.
       VrtSource(prefix + BlockVrtName(block), band, type, side, kVrtDefaultBlockSize,
                 block.second * side - x0, block.first * side - y0, width, height, &xml);

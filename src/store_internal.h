@@ -83,6 +83,49 @@ bool IsTemporaryName(const std::string& filename);
 // Halves a tile (2x2 coverage-weighted mean); result is tile_size/2 square.
 TileImage HalveTile(const TileImage& tile, TilePools* pools = nullptr);
 
+// The level VRTs (mosaic.vrt and the overview VRTs) list blocks of kVrtBlockTiles x
+// kVrtBlockTiles tiles, each block its own VRT beside its tiles with the block's whole extent
+// as geometry: a publish rewrites the blocks that gained tiles and a level VRT of one source per
+// block, not one per tile (a flight's index grows with its length; an hour has ~10^5 tiles).
+inline constexpr int64_t kVrtBlockTiles = 16;
+using BlockIndex = std::pair<int64_t, int64_t>;  // (block row, block col), signed.
+BlockIndex BlockOf(const TileIndex& tile);
+// One block's tiles: a 16-bit mask per tile row of the block, top row first, the block's first
+// column the most significant bit (the manifest's bitmaps, docs/store.md).
+using BlockRows = std::array<uint16_t, kVrtBlockTiles>;
+int TilesIn(const BlockRows& rows);
+
+// Tile bounds [row0, row1) x [col0, col1); the tile (0,0) alone if there are no tiles.
+struct TileBounds {
+  int64_t row0 = 0, row1 = 1, col0 = 0, col1 = 1;
+};
+
+// The tiles of one level, held as the blocks that have any, each with its bitmap: what a publish
+// writes of the index (the block VRTs that gained tiles, a level VRT of a source per block, the
+// manifest's bitmaps) and the bounds then cost a pass over the blocks, not over every tile of
+// the flight (an hour has ~10^5 tiles, ~400 times fewer blocks when the blocks are full).
+class LevelTiles {
+ public:
+  bool insert(const TileIndex& tile);  // True if the tile was not there.
+  bool erase(const TileIndex& tile);   // True if the tile was there.
+  bool contains(const TileIndex& tile) const;
+  size_t count(const TileIndex& tile) const { return contains(tile) ? 1 : 0; }
+  bool empty() const { return size_ == 0; }
+  size_t size() const { return size_; }
+  // Only blocks with at least one tile, in (block row, block col) order.
+  const std::map<BlockIndex, BlockRows>& blocks() const { return blocks_; }
+  // Adds a block's bitmap (OR), e.g. as read from a manifest.
+  void InsertBlock(const BlockIndex& block, const BlockRows& rows);
+  // Every tile, block by block, each block's in (row, col) order.
+  std::vector<TileIndex> tiles() const;
+  TileBounds bounds() const;
+  bool operator==(const LevelTiles& other) const { return blocks_ == other.blocks_; }
+
+ private:
+  std::map<BlockIndex, BlockRows> blocks_;
+  size_t size_ = 0;
+};
+
 // The published index of a store: what manifest.json holds.
 struct Manifest {
   int64_t generation = 0;
@@ -91,7 +134,7 @@ struct Manifest {
   int block_size = kBlockSize;
   PixelType type = PixelType::kUInt16;
   std::string compression;
-  std::vector<TileSet> levels;  // levels[0]: level-0 tiles; then overview levels.
+  std::vector<LevelTiles> levels;  // levels[0]: level-0 tiles; then overview levels.
   int64_t frame_count = 0;
   double time_min_s = 0.0, time_max_s = 0.0;
   std::string created_utc, published_utc;
@@ -106,24 +149,8 @@ std::string ManifestToJson(const Manifest& manifest);
 // Parses manifest.json; throws InputError naming the file if it is not a store manifest.
 Manifest ReadManifest(const std::filesystem::path& path);
 
-// Level-0 tile bounds [row0, row1) x [col0, col1) aligned for `levels` overview levels; the tile
-// (0,0) alone if there are no tiles.
-struct TileBounds {
-  int64_t row0 = 0, row1 = 1, col0 = 0, col1 = 1;
-};
-TileBounds BoundsOf(const TileSet& tiles);
-
-// The level VRTs (mosaic.vrt and the overview VRTs) list blocks of kVrtBlockTiles x
-// kVrtBlockTiles tiles, each block its own VRT beside its tiles with the block's whole extent
-// as geometry: a publish rewrites the blocks that gained tiles and a level VRT of one source per
-// block, not one per tile (a flight's index grows with its length; an hour has ~10^5 tiles).
-inline constexpr int64_t kVrtBlockTiles = 16;
-using BlockIndex = std::pair<int64_t, int64_t>;  // (block row, block col), signed.
-BlockIndex BlockOf(const TileIndex& tile);
 // File name of a block VRT, beside the level's tiles: block_r<row>_c<col>.vrt.
 std::string BlockVrtName(const BlockIndex& block);
-// Tiles of `level` in each block that has any.
-std::map<BlockIndex, int64_t> BlockTileCounts(const TileSet& tiles);
 // One block's VRT at `level`: the block's extent, a source per tile of the level in it.
 std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex& block);
 // mosaic.vrt (level 0) and the per-level overview VRTs of a generation, as XML text: one

@@ -256,7 +256,8 @@ struct TileStore::Impl {
   }
   size_t dirty_count = 0;
   uint64_t use_clock = 0;
-  TileSet level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
+  store::LevelTiles
+      level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
   std::map<int64_t, FrameRecord> frames;
   // Time range of `frames`, kept as records come (a publish no longer walks every record of
   // the flight under the lock: ~90,000 in an hour); stale: recomputed at the next publish.
@@ -329,7 +330,7 @@ struct TileStore::Impl {
   TileImage OverviewTile(int level, const TileIndex& tile);
   void RememberOverview(int level, const TileIndex& tile, const TileImage& image);
   int64_t overview_reads = 0;  // Writer thread only (Stats::overview_reads).
-  int LevelsFor(const TileSet& level0) const;
+  int LevelsFor(const store::LevelTiles& level0) const;
   void WriteIndex(store::Manifest* next, int64_t generation);
   // Writer thread only: tiles per block as each block VRT was last written (per level), and
   // the index figures of the publishes so far.
@@ -387,9 +388,9 @@ void TileStore::Impl::EvictLocked() {
   }
 }
 
-int TileStore::Impl::LevelsFor(const TileSet& level0) const {
+int TileStore::Impl::LevelsFor(const store::LevelTiles& level0) const {
   if (options.overview_levels >= 0) return options.overview_levels;
-  const store::TileBounds b = store::BoundsOf(level0);
+  const store::TileBounds b = level0.bounds();
   const int64_t span = std::max(b.row1 - b.row0, b.col1 - b.col0);
   int levels = 0;
   while ((int64_t{1} << levels) < span && levels < max_levels) ++levels;
@@ -458,12 +459,13 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   m.generation = generation;
   m.published_utc = store::UtcNow();
   m.overview_vrts.clear();
-  const store::TileBounds bounds = store::BoundsOf(m.levels[0]);
+  const store::TileBounds bounds = m.levels[0].bounds();
   // Block VRTs first (the level VRTs name them): only those that gained tiles since this
   // process last wrote them; after an open, each once (a store of an older layout has none).
   block_tile_counts.resize(m.levels.size());
   for (int level = 0; level <= levels; ++level) {
-    for (const auto& [block, count] : store::BlockTileCounts(m.levels[level])) {
+    for (const auto& [block, rows] : m.levels[level].blocks()) {
+      const int64_t count = store::TilesIn(rows);
       auto& written = block_tile_counts[level];
       const auto it = written.find(block);
       if (it != written.end() && it->second == count) continue;
@@ -576,10 +578,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   store::Manifest next;
   bool sets_taken = false;
   std::vector<std::pair<size_t, TileIndex>> added;
-  std::vector<TileSet> dropped;  // Levels a publish removed (none while the extent only grows).
+  std::vector<store::LevelTiles>
+      dropped;  // Levels a publish removed (none while the extent only grows).
   const size_t levels_before = manifest.levels.size();
   const auto add = [&](size_t level, const TileIndex& index) {
-    if (next.levels[level].insert(index).second) added.emplace_back(level, index);
+    if (next.levels[level].insert(index)) added.emplace_back(level, index);
   };
   try {
     // 2. Level-0 tiles, each to a temporary name then renamed.
@@ -596,7 +599,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       lock.unlock();
     }
     // The published manifest changes only once the index is written.
-    std::vector<TileSet> sets;
+    std::vector<store::LevelTiles> sets;
     sets.swap(manifest.levels);
     try {
       next = manifest;  // All but the sets.
@@ -655,7 +658,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     const int64_t level0_written = tiles_written;
     for (int level = 1; level <= levels; ++level) {
       if (level > old_levels) {
-        for (const TileIndex& tile : next.levels[level - 1]) {
+        for (const TileIndex& tile : next.levels[level - 1].tiles()) {
           if (!children.count(tile)) {
             children[tile] = store::HalveTile(
                 level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type, &Pools())
@@ -720,7 +723,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   if (sets_taken) {  // Failed: the tile sets go back as they were.
     for (const auto& [level, index] : added) next.levels[level].erase(index);
     next.levels.resize(levels_before - std::min(levels_before, dropped.size()));
-    for (TileSet& set : dropped) next.levels.push_back(std::move(set));
+    for (store::LevelTiles& set : dropped) next.levels.push_back(std::move(set));
     next.levels.resize(levels_before);
     manifest.levels.swap(next.levels);
   }
@@ -884,7 +887,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     }
     s.type = s.manifest.type;
     s.created_utc = s.manifest.created_utc;
-    s.level0_on_disk = s.manifest.levels.empty() ? TileSet{} : s.manifest.levels[0];
+    s.level0_on_disk = s.manifest.levels.empty() ? store::LevelTiles{} : s.manifest.levels[0];
     s.application_json = s.manifest.application_json;
     s.planned_bounds_px = s.manifest.planned_bounds_px;
     s.published_generation = s.requested_generation = s.started_generation = s.manifest.generation;
@@ -936,7 +939,8 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
   impl->options.tile_size = impl->manifest.tile_size;
   impl->options.pixel_type = impl->type;
   impl->options.compression = impl->manifest.compression;
-  impl->level0_on_disk = impl->manifest.levels.empty() ? TileSet{} : impl->manifest.levels[0];
+  impl->level0_on_disk =
+      impl->manifest.levels.empty() ? store::LevelTiles{} : impl->manifest.levels[0];
   impl->published_generation = impl->manifest.generation;
   impl->application_json = impl->manifest.application_json;
   for (const FrameRecord& record : store::ReadFramesGpkg(impl->root / "frames.gpkg")) {
@@ -1226,12 +1230,12 @@ TileStore::Stats TileStore::stats() const {
 cv::Rect TileStore::level0_bounds_px() const {
   const Impl& s = *impl_;
   std::lock_guard<std::mutex> lock(s.mutex);
-  TileSet all = s.level0_on_disk;
+  store::LevelTiles all = s.level0_on_disk;  // A copy of its blocks, not of every tile.
   for (const auto& [index, tile] : s.cache) {
     if (tile.dirty || tile.writing) all.insert(index);  // Not the blank tiles of zero weights.
   }
   if (all.empty()) return {};
-  const store::TileBounds b = store::BoundsOf(all);
+  const store::TileBounds b = all.bounds();
   const int t = s.options.tile_size;
   return {static_cast<int>(b.col0 * t), static_cast<int>(b.row0 * t),
           static_cast<int>((b.col1 - b.col0) * t), static_cast<int>((b.row1 - b.row0) * t)};

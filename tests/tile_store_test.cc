@@ -225,6 +225,67 @@ TEST(TileStoreTest, AReaderOpenedEarlyStillReadsOverviewsAfterTheMosaicGrew) {
 // "mosaic.vrt"): the level VRTs name blocks of 16 x 16 tiles, each block its own VRT, and only
 // blocks that gained tiles are rewritten. A flat VRT (one source per tile) would rewrite ~1 KB
 // per tile and band on every publish: ~100 MB for the ~10^5 tiles of an hour's flight.
+// The index's tile sets are blocks with bitmaps (store::LevelTiles): against a std::set of the
+// same random tiles on both sides of 0 (block rows and columns below 0 are floor-divided), with
+// tiles taken out again, whole blocks emptied, and a block read back from its bitmap.
+TEST(TileStoreTest, LevelTilesAgreeWithASetOfTheSameTiles) {
+  std::mt19937 rng(7);
+  std::uniform_int_distribution<int64_t> coord(-40, 40);
+  store::LevelTiles level;
+  std::set<store::TileIndex> truth;
+  for (int k = 0; k < 3000; ++k) {
+    const store::TileIndex tile{coord(rng), coord(rng)};
+    const bool erase = k % 3 == 2;
+    const bool changed = erase ? level.erase(tile) : level.insert(tile);
+    const bool expected = erase ? truth.erase(tile) == 1 : truth.insert(tile).second;
+    ASSERT_EQ(changed, expected) << k;
+  }
+  // Empty a whole block: it leaves the block list.
+  for (int64_t r = 0; r < 16; ++r) {
+    for (int64_t c = -16; c < 0; ++c) {
+      level.erase({r, c});
+      truth.erase({r, c});
+    }
+  }
+  EXPECT_EQ(level.blocks().count({0, -1}), 0u);
+  ASSERT_EQ(level.size(), truth.size());
+  const std::vector<store::TileIndex> listed = level.tiles();
+  EXPECT_EQ(std::set<store::TileIndex>(listed.begin(), listed.end()), truth);
+  EXPECT_EQ(listed.size(), truth.size());
+  size_t in_blocks = 0;
+  for (const auto& [block, rows] : level.blocks()) {
+    EXPECT_GT(store::TilesIn(rows), 0);
+    in_blocks += static_cast<size_t>(store::TilesIn(rows));
+  }
+  EXPECT_EQ(in_blocks, truth.size());
+  for (int64_t r = -45; r <= 45; r += 5) {
+    for (int64_t c = -45; c <= 45; ++c) {
+      ASSERT_EQ(level.contains({r, c}), truth.count({r, c}) == 1) << r << "," << c;
+    }
+  }
+  store::TileBounds expected{INT64_MAX, INT64_MIN, INT64_MAX, INT64_MIN};
+  for (const auto& [row, col] : truth) {
+    expected.row0 = std::min(expected.row0, row);
+    expected.row1 = std::max(expected.row1, row + 1);
+    expected.col0 = std::min(expected.col0, col);
+    expected.col1 = std::max(expected.col1, col + 1);
+  }
+  const store::TileBounds b = level.bounds();
+  EXPECT_EQ(std::tie(b.row0, b.row1, b.col0, b.col1),
+            std::tie(expected.row0, expected.row1, expected.col0, expected.col1));
+  // A single tile far from the others: bounds of one tile; a block rebuilt from its bitmap.
+  store::LevelTiles one;
+  one.insert({-17, 33});
+  const store::TileBounds b1 = one.bounds();
+  EXPECT_EQ(std::tie(b1.row0, b1.row1, b1.col0, b1.col1),
+            std::make_tuple(int64_t{-17}, int64_t{-16}, int64_t{33}, int64_t{34}));
+  store::LevelTiles copy;
+  for (const auto& [block, rows] : level.blocks()) copy.InsertBlock(block, rows);
+  EXPECT_TRUE(copy == level);
+  EXPECT_EQ(copy.size(), level.size());
+  EXPECT_TRUE(store::LevelTiles().empty());
+}
+
 TEST(TileStoreTest, IndexWrittenPerPublishIsBoundedByTheChangeNotTheStore) {
   const fs::path dir = FreshDir("index_cost") / "s.irmosaic";
   constexpr int kTile = 64;
