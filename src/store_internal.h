@@ -103,7 +103,7 @@ struct TileBounds {
 // The tiles of one level, held as the blocks that have any, each with its bitmap: what a publish
 // writes of the index (the block VRTs that gained tiles, a level VRT of a source per block, the
 // manifest's bitmaps) and the bounds then cost a pass over the blocks, not over every tile of
-// the flight (an hour has ~10^5 tiles, ~400 times fewer blocks when the blocks are full).
+// the flight (an hour has ~10^5 tiles; a full block holds 256).
 class LevelTiles {
  public:
   bool insert(const TileIndex& tile);  // True if the tile was not there.
