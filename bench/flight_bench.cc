@@ -432,6 +432,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"publishes", st.publishes},
             {"overview_updates", st.overview_updates},
             {"overview_updates_early", st.overview_updates_early},
+            {"overview_slices", st.overview_slices},
             {"tile_reloads", st.tile_reloads},
             {"overview_reads", st.overview_reads},
             {"tile_copies", st.tile_copies},
@@ -912,7 +913,8 @@ int main(int argc, char** argv) {
               << p["overview_tiles_written"].get<int64_t>() << "), publishes "
               << p["publishes"].get<int64_t>() << " (overview updates "
               << p["overview_updates"].get<int64_t>() << ", of them early "
-              << p["overview_updates_early"].get<int64_t>() << ")\n";
+              << p["overview_updates_early"].get<int64_t>() << ", in "
+              << p["overview_slices"].get<int64_t>() << " slices between publishes)\n";
   }
 
   if (!compare.empty()) {

@@ -18,8 +18,9 @@ cmake --build "$build_dir" -j2 --target "${targets[@]}"
 export TSAN_OPTIONS="suppressions=$PWD/tests/tsan.supp halt_on_error=1"
 "$build_dir/tests/map_fusion_test"
 "$build_dir/tests/helper_threads_test"
-# The painter against the writer's publishes (copy-on-write tiles); the other store tests fork
-# readers and kill -9 writers, which TSan does not follow.
-"$build_dir/tests/tile_store_test" --gtest_filter='TileStoreTest.PaintingDuringPublishes*'
+# The painter against the writer's publishes (copy-on-write tiles) and its overview slices; the
+# other store tests fork readers and kill -9 writers, which TSan does not follow.
+"$build_dir/tests/tile_store_test" \
+  --gtest_filter='TileStoreTest.PaintingDuring*'
 [[ "${1:-}" == full ]] && "$build_dir/tests/mosaicker_test"
 echo "tsan: ${targets[*]} clean"

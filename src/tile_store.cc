@@ -84,6 +84,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
               " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
   } else if (!(overview_interval_s >= 0.0) || !std::isfinite(overview_interval_s)) {
     problem = "overview_interval_s must be >= 0 seconds";
+  } else if (overview_slice_tiles < 1) {
+    problem = "overview_slice_tiles must be at least 1";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
   } else if (writer_nice < 0 || writer_nice > 19) {
@@ -294,6 +296,23 @@ struct TileStore::Impl {
   // were last brought up to date.
   std::map<TileIndex, TileImage> overview_owed;
   Clock::time_point last_secondary{};
+  // The overview update under way (cycle_levels >= 0): cycle_owed[L] holds the changed tiles of
+  // level L - 1, halved, that level L still has to take (an empty image: read from disk when its
+  // turn comes); build_whole[L]: level L is new, built from every tile of level L - 1 once the
+  // levels below are done. Paused after a failure until the next publish.
+  int cycle_levels = -1;
+  std::vector<std::map<TileIndex, TileImage>> cycle_owed;
+  std::vector<bool> build_whole;
+  bool cycle_paused = false;
+  bool slice_turn = false;  // The writer published last: a slice goes before the next publish.
+  bool index_owed = false;  // A slice listed new overview tiles that no index names yet.
+  bool qlr_owed = false;    // A slice moved the display range the .qlr files hold.
+  size_t CycleOwedCount() const {
+    size_t n = 0;
+    for (const auto& level : cycle_owed) n += level.size();
+    return n;
+  }
+  bool CycleRunnable() const { return cycle_levels >= 0 && !cycle_paused; }
   std::optional<Clock::time_point> last_clean;  // Last CleanStaleFiles (stale overview VRTs).
   static constexpr std::chrono::seconds kCleanInterval{60};
   std::map<std::pair<int, TileIndex>, TileImage> overview_cache;
@@ -311,6 +330,18 @@ struct TileStore::Impl {
   void EvictLocked();
   void WriterLoop();
   void PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock);
+  // Overview updates. Start: the tiles owed so far join the update (levels as `target`'s level
+  // 0 asks). Step: one slice, at most max_parents tiles of the lowest level owing any (a new
+  // level whole), listed in `target`; true when nothing is left. Slice: a step between publishes
+  // (lock held on entry and exit), the index rewritten when the update ends.
+  void StartOverviewCycle(store::Manifest* target);
+  bool OverviewStep(store::Manifest* target, size_t max_parents, int64_t* bytes, int64_t* tiles,
+                    std::vector<TileImage>* top);
+  void FinishOverviewCycle(const store::Manifest& current);
+  void OverviewSlice(std::unique_lock<std::mutex>& lock);
+  // Widens m's display range by the covered values of `top` (the highest level's tiles); true
+  // if it moved enough to rewrite the .qlr files.
+  static bool WidenDisplayRange(store::Manifest* m, const std::vector<const TileImage*>& top);
   // Drops the writer's references to snapshot images (lock not held on entry) under the lock.
   // The snapshot shares its buffers with the cache: Paint copies a shared buffer under the lock
   // and drops its own reference inside OpenCV (reference count in uninstrumented code, with
@@ -525,7 +556,156 @@ void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
   }
 }
 
+bool TileStore::Impl::WidenDisplayRange(store::Manifest* m,
+                                        const std::vector<const TileImage*>& top) {
+  double lo = 0, hi = 0;
+  if (!store::CoveredPercentiles(top, &lo, &hi)) return false;
+  if (m->display_hi > m->display_lo) {
+    lo = std::min(lo, m->display_lo);
+    hi = std::max(hi, m->display_hi);
+  }
+  const double span = std::max(hi - lo, 1e-6);
+  const bool changed =
+      std::abs(lo - m->display_lo) > 0.02 * span || std::abs(hi - m->display_hi) > 0.02 * span;
+  m->display_lo = lo;
+  m->display_hi = hi;
+  return changed;
+}
+
+void TileStore::Impl::StartOverviewCycle(store::Manifest* target) {
+  const int levels = LevelsFor(target->levels[0]);
+  const int existing = static_cast<int>(target->levels.size()) - 1;
+  if (target->levels.size() > static_cast<size_t>(levels) + 1) {
+    target->levels.resize(levels + 1);  // Fewer levels than before (a resume with other options).
+  }
+  if (cycle_levels < 0) {
+    cycle_owed.clear();
+    build_whole.clear();
+  }
+  cycle_owed.resize(levels + 1);
+  build_whole.resize(levels + 1, false);
+  for (int level = existing + 1; level <= levels; ++level) build_whole[level] = true;
+  cycle_levels = levels;
+  if (levels >= 1) {
+    for (auto& [index, half] : overview_owed) cycle_owed[1][index] = std::move(half);
+  }
+  overview_owed.clear();
+}
+
+bool TileStore::Impl::OverviewStep(store::Manifest* target, size_t max_parents, int64_t* bytes,
+                                   int64_t* tiles, std::vector<TileImage>* top) {
+  for (int level = 1; level <= cycle_levels; ++level) {
+    std::map<TileIndex, TileImage>& owed = cycle_owed[level];
+    bool whole = false;
+    if (build_whole[level]) {
+      // A level the extent just gained, built in one step so that it appears complete. In a
+      // flight that is when the extent passes a power of two tiles: the level below spans at
+      // most 3 x 3 tiles then. The levels below are done: this is the lowest level owing.
+      for (const TileIndex& tile : target->levels[level - 1].tiles())
+        owed.emplace(tile, TileImage{});
+      build_whole[level] = false;
+      whole = true;
+    }
+    if (owed.empty()) continue;
+    std::map<TileIndex, std::vector<TileIndex>> by_parent;
+    for (const auto& [child, half] : owed) {
+      by_parent[{FloorDiv(child.first, 2), FloorDiv(child.second, 2)}].push_back(child);
+    }
+    std::map<TileIndex, TileImage> children;
+    size_t parents = 0;
+    for (const auto& [parent, kids] : by_parent) {
+      if (!whole && parents == max_parents) break;
+      ++parents;
+      for (const TileIndex& child : kids) {
+        TileImage half = owed.at(child);
+        if (half.empty()) {  // Owed without its image: the file holds it.
+          half = store::HalveTile(
+              level == 1 ? store::ReadTile(PathOf(0, child), options.tile_size, type, &Pools())
+                         : OverviewTile(level - 1, child),
+              &Pools());
+        }
+        children.emplace(child, std::move(half));
+      }
+    }
+    std::map<TileIndex, TileImage> written = UpdateOverviewLevel(level, children, bytes, tiles);
+    if (target->levels.size() <= static_cast<size_t>(level)) target->levels.resize(level + 1);
+    for (auto& [parent, image] : written) {
+      index_owed = target->levels[level].insert(parent) || index_owed;
+      if (level < cycle_levels) {
+        cycle_owed[level + 1][parent] = store::HalveTile(image, &Pools());
+      } else {
+        top->push_back(std::move(image));
+      }
+    }
+    for (const auto& [child, half] : children) owed.erase(child);
+    break;
+  }
+  for (int level = 1; level <= cycle_levels; ++level) {
+    if (!cycle_owed[level].empty() || build_whole[level]) return false;
+  }
+  return true;
+}
+
+void TileStore::Impl::FinishOverviewCycle(const store::Manifest& current) {
+  cycle_levels = -1;
+  cycle_owed.clear();
+  build_whole.clear();
+  if (closing || !last_clean || Clock::now() - *last_clean >= kCleanInterval) {
+    CleanStaleFiles(current);
+    last_clean = Clock::now();
+  }
+  last_secondary = Clock::now();
+}
+
+void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
+  lock.unlock();
+  const Clock::time_point start = Clock::now();
+  const double cpu_start_ms = ThreadCpuMs();
+  int64_t bytes = 0, tiles = 0;
+  std::string error;
+  try {
+    std::vector<TileImage> top;
+    const bool done = OverviewStep(&manifest, static_cast<size_t>(options.overview_slice_tiles),
+                                   &bytes, &tiles, &top);
+    std::vector<const TileImage*> top_images;
+    for (const TileImage& image : top) top_images.push_back(&image);
+    qlr_owed = WidenDisplayRange(&manifest, top_images) || qlr_owed;
+    if (done) {
+      // New overview tiles become visible with the index; tiles already listed were replaced
+      // in place. The generation stays: no level-0 tile changed.
+      if (index_owed) WriteIndex(&manifest, manifest.generation);
+      index_owed = false;
+      if (qlr_owed) WriteQlr(manifest);
+      qlr_owed = false;
+      FinishOverviewCycle(manifest);
+    }
+  } catch (const Error& e) {
+    error = e.what();
+  } catch (const std::exception& e) {
+    error = std::string("unexpected failure while updating the overviews: ") + e.what();
+  }
+  const double busy_ms = MsSince(start);
+  const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  lock.lock();
+  // A failed slice (a full disk) keeps what it owed and waits for the next publish, which
+  // reports the condition if it persists, instead of retrying in a loop.
+  if (!error.empty()) cycle_paused = true;
+  ++stats.overview_slices;
+  stats.writer_busy_ms += busy_ms;
+  stats.writer_cpu_ms += cpu_ms;
+  stats.tiles_written += tiles;
+  stats.overview_tiles_written += tiles;
+  stats.bytes_written += bytes;
+  stats.overview_reads = overview_reads;
+  stats.index_ms_total = index_ms;
+  stats.index_bytes_total = index_bytes;
+  stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
+  stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
+  changed.notify_all();
+}
+
 void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock) {
+  cycle_paused = false;  // A slice that failed tries again after this publish.
   // 1. Snapshot what changed, under the lock (memory copies only).
   std::map<TileIndex, TileImage> level0;
   for (auto& [index, tile] : cache) {
@@ -538,18 +718,24 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     tile.writing = true;
     --dirty_count;
   }
-  // Overviews and frames.gpkg at most every overview_interval_s, and always when closing, or
-  // sooner when more than kOwedPerCachedTile x max_cached_tiles level-0 tiles would wait for
-  // them: the images they wait with stay in memory (a burst of re-renders, e.g. the final
-  // solve's, touches hundreds), halved, so each takes a quarter of a cached tile's memory.
+  // Overviews and frames.gpkg at most every overview_interval_s after the last update ended,
+  // and always when closing, or sooner when more than kOwedPerCachedTile x max_cached_tiles
+  // tiles would wait for them: the images they wait with stay in memory (a burst of re-renders,
+  // e.g. the final solve's, touches hundreds), halved, so each takes a quarter of a cached
+  // tile's memory. An update by the clock runs in slices between publishes; the others here.
+  // The bound counts the tiles owed since the last update started; those of an update under way
+  // (at most as many, a third more for its upper levels) are being worked off.
   size_t owed = overview_owed.size();
   for (const auto& [index, image] : level0) owed += overview_owed.count(index) ? 0 : 1;
-  const bool due = closing || options.overview_interval_s <= 0.0 ||
-                   std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
-                       options.overview_interval_s;
-  const bool secondary = due || owed > kOwedPerCachedTile * options.max_cached_tiles;
+  const bool live = !closing && options.overview_interval_s > 0.0;
+  const bool due = !live || (cycle_levels < 0 &&
+                             std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
+                                 options.overview_interval_s);
+  const bool early = !due && owed > kOwedPerCachedTile * options.max_cached_tiles;
+  const bool secondary = due || early;
+  const bool synchronous = !live || early;
   stats.overview_updates += secondary ? 1 : 0;
-  stats.overview_updates_early += secondary && !due ? 1 : 0;
+  stats.overview_updates_early += early ? 1 : 0;
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
   secondary_owed = !secondary;
@@ -573,17 +759,12 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::vector<TileIndex> snapshot;
   for (const auto& [index, image] : level0) snapshot.push_back(index);
   // The next manifest takes the published one's tile sets instead of a copy of them (a copy per
-  // publish cost as much as the tiles flown, ~10^5 an hour) and notes what it adds; a failed
-  // publish takes that back, so the published manifest stays as it was.
+  // publish cost as much as the tiles flown, ~10^5 an hour) and notes the level-0 tiles it
+  // adds; a failed publish takes those back. Overview tiles it lists stay listed: their files
+  // are complete on disk.
   store::Manifest next;
   bool sets_taken = false;
-  std::vector<std::pair<size_t, TileIndex>> added;
-  std::vector<store::LevelTiles>
-      dropped;  // Levels a publish removed (none while the extent only grows).
-  const size_t levels_before = manifest.levels.size();
-  const auto add = [&](size_t level, const TileIndex& index) {
-    if (next.levels[level].insert(index)) added.emplace_back(level, index);
-  };
+  std::vector<TileIndex> added;
   try {
     // 2. Level-0 tiles, each to a temporary name then renamed.
     double gt[6];
@@ -609,24 +790,23 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     }
     next.levels.swap(sets);
     sets_taken = true;
-    for (const auto& [index, image] : level0) add(0, index);
+    const auto add = [&](const TileIndex& index) {
+      if (next.levels[0].insert(index)) added.push_back(index);
+    };
+    for (const auto& [index, image] : level0) add(index);
     // Tiles a failed publish wrote are on disk but were never listed: listed now (they were
-    // left out of the index until painted again).
+    // left out of the index until painted again), and their overviews read them from disk.
     for (const TileIndex& index : propagate_pending) {
-      if (level0_on_disk.count(index)) add(0, index);
-    }
-    // Level 1 needs each changed tile halved: done now, so the writer lets go of the painters'
-    // buffers at once (a tile painted again needs no copy) and a deferred tile waits for the
-    // next overview update at a quarter of its size.
-    std::map<TileIndex, TileImage> halves;
-    if (!secondary) {
-      for (const auto& [index, image] : level0) {
-        overview_owed[index] = store::HalveTile(image, &Pools());
+      if (level0_on_disk.count(index)) {
+        add(index);
+        overview_owed.emplace(index, TileImage{});
       }
-    } else {
-      halves.swap(overview_owed);
-      for (const auto& [index, image] : halves) snapshot.push_back(index);  // Owed on failure.
-      for (const auto& [index, image] : level0) halves[index] = store::HalveTile(image, &Pools());
+    }
+    // Level 1 takes each changed tile halved: done now, so the writer lets go of the painters'
+    // buffers at once (a tile painted again needs no copy) and the tile waits for its overview
+    // update at a quarter of its size.
+    for (const auto& [index, image] : level0) {
+      overview_owed[index] = store::HalveTile(image, &Pools());
     }
     // The display range below reads the top level's tiles; with no overview level, these. The
     // references to the painters' buffers change hands under the lock (Paint reads the count).
@@ -637,61 +817,19 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     }
     level0.clear();
     lock.unlock();
-    // Tiles written by a failed publish still owe their overviews.
-    for (const TileIndex& index : secondary ? propagate_pending : TileSet{}) {
-      if (!halves.count(index)) {
-        halves[index] = store::HalveTile(
-            store::ReadTile(PathOf(0, index), options.tile_size, type, &Pools()), &Pools());
+    // 3. Overviews: changed tiles propagate up, level by level; a level that did not exist is
+    // built whole. Here when synchronous; otherwise in slices after this publish.
+    std::vector<TileImage> top;
+    if (secondary) StartOverviewCycle(&next);
+    if (synchronous) {
+      while (!OverviewStep(&next, std::numeric_limits<size_t>::max(), &bytes, &overview_written,
+                           &top)) {
       }
     }
-    // 3. Overviews: changed tiles propagate up; a level that did not exist is built whole.
-    const int old_levels = static_cast<int>(next.levels.size()) - 1;
-    const int levels = secondary ? LevelsFor(next.levels[0]) : old_levels;
-    if (next.levels.size() > static_cast<size_t>(levels) + 1) {
-      dropped.assign(std::make_move_iterator(next.levels.begin() + levels + 1),
-                     std::make_move_iterator(next.levels.end()));
-    }
-    next.levels.resize(levels + 1);
-    // Halved children of the level being updated (writer-owned: no painter shares them).
-    std::map<TileIndex, TileImage> children = std::move(halves);
-    std::map<TileIndex, TileImage> parents;  // The last level written, full size.
-    const int64_t level0_written = tiles_written;
-    for (int level = 1; level <= levels; ++level) {
-      if (level > old_levels) {
-        for (const TileIndex& tile : next.levels[level - 1].tiles()) {
-          if (!children.count(tile)) {
-            children[tile] = store::HalveTile(
-                level == 1 ? store::ReadTile(PathOf(0, tile), options.tile_size, type, &Pools())
-                           : OverviewTile(level - 1, tile),
-                &Pools());
-          }
-        }
-      }
-      parents = UpdateOverviewLevel(level, children, &bytes, &tiles_written);
-      children.clear();
-      for (const auto& [index, image] : parents) {
-        add(level, index);
-        if (level < levels) children[index] = store::HalveTile(image, &Pools());
-      }
-    }
-    overview_written = tiles_written - level0_written;
-    // Display range for the .qlr, from the highest level touched (a few tiles, whole extent).
-    std::vector<const TileImage*> top;
-    for (const auto& [index, image] : parents) top.push_back(&image);
-    for (const TileImage& image : level0_top) top.push_back(&image);
-    double lo = 0, hi = 0;
-    bool range_changed = false;
-    if (store::CoveredPercentiles(top, &lo, &hi)) {
-      if (next.display_hi > next.display_lo) {
-        lo = std::min(lo, next.display_lo);
-        hi = std::max(hi, next.display_hi);
-      }
-      const double span = std::max(hi - lo, 1e-6);
-      range_changed = std::abs(lo - next.display_lo) > 0.02 * span ||
-                      std::abs(hi - next.display_hi) > 0.02 * span;
-      next.display_lo = lo;
-      next.display_hi = hi;
-    }
+    std::vector<const TileImage*> top_images;
+    for (const TileImage& image : top) top_images.push_back(&image);
+    for (const TileImage& image : level0_top) top_images.push_back(&image);
+    const bool range_changed = WidenDisplayRange(&next, top_images) || qlr_owed;
     // 4. Frames, then the index: overview VRTs, mosaic.vrt, manifest.json.
     if (secondary && (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg"))) {
       store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
@@ -703,28 +841,24 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     next.application_json = application;
     next.planned_bounds_px = planned;
     WriteIndex(&next, generation);
+    index_owed = false;
     if (range_changed) WriteQlr(next);
+    qlr_owed = false;
     manifest = std::move(next);
     sets_taken = false;
-    if (secondary) {
-      propagate_pending.clear();
-      if (closing || !last_clean || Clock::now() - *last_clean >= kCleanInterval) {
-        CleanStaleFiles(manifest);
-        last_clean = Clock::now();
-      }
-      last_secondary = Clock::now();
-    }
+    propagate_pending.clear();
+    if (synchronous && cycle_levels >= 0) FinishOverviewCycle(manifest);
   } catch (const Error& e) {
     error = e.what();
   } catch (const std::exception& e) {
     error = std::string("unexpected failure while publishing: ") + e.what();
   }
-  if (!error.empty()) propagate_pending.insert(snapshot.begin(), snapshot.end());
-  if (sets_taken) {  // Failed: the tile sets go back as they were.
-    for (const auto& [level, index] : added) next.levels[level].erase(index);
-    next.levels.resize(levels_before - std::min(levels_before, dropped.size()));
-    for (store::LevelTiles& set : dropped) next.levels.push_back(std::move(set));
-    next.levels.resize(levels_before);
+  if (!error.empty()) {
+    propagate_pending.insert(snapshot.begin(), snapshot.end());
+    cycle_paused = true;  // What the update owes stays owed; it goes on after the next publish.
+  }
+  if (sets_taken) {  // Failed: the level-0 set goes back as it was.
+    for (const TileIndex& index : added) next.levels[0].erase(index);
     manifest.levels.swap(next.levels);
   }
   const double busy_ms = MsSince(start);
@@ -733,11 +867,12 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   lock.lock();
   stats.writer_busy_ms += busy_ms;
   stats.writer_cpu_ms += cpu_ms;
-  stats.overview_owed_tiles = overview_owed.size();
+  stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
+  stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
   stats.index_ms_total = index_ms;
   stats.overview_reads = overview_reads;
   stats.index_bytes_total = index_bytes;
-  stats.tiles_written += tiles_written;
+  stats.tiles_written += tiles_written + overview_written;
   stats.overview_tiles_written += overview_written;
   stats.bytes_written += bytes;
   if (error.empty()) {
@@ -779,13 +914,22 @@ void TileStore::Impl::WriterLoop() {
   LowerThisThreadPriority(options.writer_nice);
   std::unique_lock<std::mutex> lock(mutex);
   for (;;) {
-    changed.wait(lock, [&] { return stop || requested_generation > started_generation; });
-    if (requested_generation > started_generation) {
+    changed.wait(
+        lock, [&] { return stop || requested_generation > started_generation || CycleRunnable(); });
+    // An overview update under way takes one slice after each publish, and all the time the
+    // writer has between publishes: a publish waits for one slice at most, and the update
+    // ends within as many publishes as it has slices even when the writer is never idle.
+    if (requested_generation > started_generation && !(slice_turn && CycleRunnable())) {
       started_generation = requested_generation;
       PublishOnce(started_generation, lock);
+      slice_turn = true;
       continue;
     }
-    if (stop) return;
+    if (stop && requested_generation <= started_generation) return;
+    if (CycleRunnable()) {
+      OverviewSlice(lock);
+      slice_turn = false;
+    }
   }
 }
 
@@ -1096,8 +1240,10 @@ int64_t TileStore::RequestPublish() {
   // A request not yet started by the writer already covers everything painted so far.
   if (s.requested_generation > s.started_generation) return s.requested_generation;
   // Nothing new since the writer's last snapshot: that generation already holds it all.
+  // Closing, an overview update still under way needs the last publish too (it finishes it).
   const bool changed = s.dirty_count > 0 || !s.frames_changed.empty() || s.application_dirty ||
-                       s.secondary_owed || s.failed_generation >= s.started_generation;
+                       s.secondary_owed || s.failed_generation >= s.started_generation ||
+                       (s.closing && s.stats.overviews_pending);
   if (!changed) return s.started_generation;
   ++s.requested_generation;
   s.request_time_of[s.requested_generation] = Clock::now();

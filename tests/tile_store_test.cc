@@ -899,11 +899,13 @@ TEST(TileStoreTest, TilesOwedToDeferredOverviewsStayBounded) {
 // disk (level 0 and the overviews) once published. scripts/tsan.sh runs this test under
 // ThreadSanitizer: a writer that dropped its snapshot outside the lock was reported racing with
 // the painter's copy of a shared tile when the copy fell in the publish's overview phase.
-TEST(TileStoreTest, PaintingDuringPublishesKeepsTheLastPaintedValues) {
-  const fs::path dir = FreshDir("paint_publish") / "s.irmosaic";
+// overview_interval_s 0: overviews within every publish; > 0: in slices between publishes.
+void PaintDuringPublishes(const std::string& name, double overview_interval_s) {
+  const fs::path dir = FreshDir(name) / "s.irmosaic";
   TileStoreOptions options = Options(dir, 64);
   options.pixel_type = PixelType::kByte;
-  options.overview_interval_s = 0.0;  // Overviews with every publish.
+  options.overview_interval_s = overview_interval_s;
+  options.overview_slice_tiles = 1;
   auto store = TileStore::Open(options, Georef());
   PaintSquare(store.get(), {0, 0}, 512, 1);  // 8 x 8 tiles: overview levels 1 to 3.
   store->WaitPublished(store->RequestPublish());
@@ -936,6 +938,104 @@ TEST(TileStoreTest, PaintingDuringPublishesKeepsTheLastPaintedValues) {
     EXPECT_EQ(cv::countNonZero(r.data(cv::Rect(0, 0, side, side)) == last), side * side)
         << "level " << level;
   }
+}
+
+TEST(TileStoreTest, PaintingDuringPublishesKeepsTheLastPaintedValues) {
+  PaintDuringPublishes("paint_publish", 0.0);
+}
+
+TEST(TileStoreTest, PaintingDuringOverviewSlicesKeepsTheLastPaintedValues) {
+  PaintDuringPublishes("paint_slices", 0.001);
+}
+
+// Publishes until the store's overviews are up to date (a client's periodic RequestPublish starts
+// an owed update); false after `timeout`.
+bool WaitForOverviews(TileStore* store, std::chrono::seconds timeout = std::chrono::seconds(120)) {
+  const auto end = std::chrono::steady_clock::now() + timeout;
+  while (std::chrono::steady_clock::now() < end) {
+    if (!store->stats().overviews_pending) return true;
+    store->RequestPublish();
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return false;
+}
+
+// Every level of the store's mosaic.vrt over its first `side` level-0 pixels holds `value`.
+void ExpectLevelsHold(const fs::path& dir, int levels, int side, int value) {
+  GdalErrorCount errors;
+  for (int level = 0; level <= levels; ++level) {
+    const Raster r = ReadThroughGdal(dir / "mosaic.vrt", level);
+    ASSERT_FALSE(r.data.empty()) << "level " << level << ": " << errors.last;
+    const int n = side >> level;
+    ASSERT_GE(r.data.cols, n) << "level " << level;
+    EXPECT_EQ(cv::countNonZero(r.data(cv::Rect(0, 0, n, n)) == value), n * n)
+        << "level " << level << ", value " << value;
+  }
+}
+
+// Live (overview_interval_s > 0), the pyramid is brought up to date between publishes in slices
+// of at most overview_slice_tiles tiles, and a publish asked for meanwhile goes before the rest
+// of the update: a frame's publish waits for one slice, not for the pyramid.
+TEST(TileStoreTest, LiveOverviewUpdatesRunInSlicesAndPublishesGoFirst) {
+  const fs::path dir = FreshDir("slices") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.pixel_type = PixelType::kByte;
+  options.overview_interval_s = 0.001;
+  options.overview_slice_tiles = 1;
+  options.max_cached_tiles = 2048;
+  auto store = TileStore::Open(options, Georef());
+  // 16 x 16 tiles: levels 1 to 3 (the most a 64-pixel tile allows), 64 + 16 + 4 = 84 tiles.
+  constexpr int kSide = 16 * 64, kLevels = 3, kOverviewTiles = 84;
+  PaintSquare(store.get(), {0, 0}, kSide, 1);
+  store->WaitPublished(store->RequestPublish());
+  ASSERT_TRUE(WaitForOverviews(store.get()));
+  // Up to date without a Close: the update ended by itself and its new tiles are listed.
+  ExpectLevelsHold(dir, kLevels, kSide, 1);
+
+  // The levels exist now: the next update of every tile runs one tile per slice.
+  TileStore::Stats before = store->stats();
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));  // Past the interval.
+  PaintSquare(store.get(), {0, 0}, kSide, 2);
+  store->WaitPublished(store->RequestPublish());
+  TileStore::Stats after = store->stats();
+  EXPECT_LT(after.overview_tiles_written - before.overview_tiles_written, kOverviewTiles)
+      << "the publish waited for the whole pyramid";
+  ASSERT_TRUE(WaitForOverviews(store.get()));
+  after = store->stats();
+  EXPECT_EQ(after.overview_tiles_written - before.overview_tiles_written, kOverviewTiles);
+  EXPECT_EQ(after.overview_slices - before.overview_slices, kOverviewTiles);
+  ExpectLevelsHold(dir, kLevels, kSide, 2);
+
+  // A publish asked for during an update is published before the update ends, and the update
+  // goes on after it to the newest values.
+  before = store->stats();
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  PaintSquare(store.get(), {0, 0}, kSide, 3);
+  store->WaitPublished(store->RequestPublish());  // Starts the update of all 84 tiles.
+  PaintSquare(store.get(), {0, 0}, 64, 4);
+  store->WaitPublished(store->RequestPublish());
+  after = store->stats();
+  EXPECT_LT(after.overview_slices - before.overview_slices, kOverviewTiles)
+      << "the second publish waited for the update to end";
+  EXPECT_EQ(ReadThroughGdal(dir / "mosaic.vrt").data.at<float>(0, 0), 4.0f);
+  ASSERT_TRUE(WaitForOverviews(store.get()));
+  {
+    GdalErrorCount errors;
+    for (int level = 0; level <= kLevels; ++level) {
+      const Raster r = ReadThroughGdal(dir / "mosaic.vrt", level);
+      ASSERT_FALSE(r.data.empty()) << "level " << level << ": " << errors.last;
+      const int n = 64 >> level;  // Tile (0, 0)'s share of the level.
+      EXPECT_EQ(cv::countNonZero(r.data(cv::Rect(0, 0, n, n)) == 4), n * n) << "level " << level;
+    }
+  }
+
+  // Close right after a publish that started an update, with nothing painted since: Close
+  // still brings every level up to date.
+  std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  PaintSquare(store.get(), {0, 0}, kSide, 5);
+  store->WaitPublished(store->RequestPublish());
+  store->Close();
+  ExpectLevelsHold(dir, kLevels, kSide, 5);
 }
 
 TEST(TileStoreTest, BadPathsAreOutputErrorsNamingThePath) {

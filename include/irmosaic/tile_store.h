@@ -45,9 +45,15 @@ struct TileStoreOptions {
   // every publish), or sooner when more than 4 x max_cached_tiles level-0 tiles wait for them
   // (their images wait in memory, halved: a quarter of a tile each); level-0 tiles and the index
   // are published every time, and Close() brings everything up to date. Zoomed-out views may lag by
-  // this much; the writer's work per publish no longer includes the overview pyramid and the
-  // growing frames.gpkg.
+  // this much plus the update's own time; the writer's work per publish no longer includes the
+  // overview pyramid and the growing frames.gpkg.
   double overview_interval_s = 0.0;
+  // With overview_interval_s > 0 an overview update runs between publishes, in slices of at
+  // most this many overview tiles (a level the extent just gained, at most 3 x 3 tiles, in
+  // one): a level-0 publish asked for meanwhile goes first, so the frames' publish latency
+  // waits for one slice, not for the whole pyramid. Early updates (the memory bound below),
+  // overview_interval_s 0 and Close() bring the overviews up to date within their publish.
+  int overview_slice_tiles = 8;
   // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
   // early when more than 4 times this many tiles wait for them (halved).
   size_t max_cached_tiles = 64;
@@ -161,8 +167,11 @@ class IRMOSAIC_EXPORT TileStore {
     // bound (overview_owed_early).
     int64_t overview_updates = 0;
     int64_t overview_updates_early = 0;
-    int64_t tile_reloads = 0;    // Tiles read back from disk after leaving memory.
-    int64_t overview_reads = 0;  // Overview tiles read from disk to update them.
+    // Slices of overview work the writer ran between publishes (overview_slice_tiles).
+    int64_t overview_slices = 0;
+    bool overviews_pending = false;  // An overview update is under way or tiles wait for one.
+    int64_t tile_reloads = 0;        // Tiles read back from disk after leaving memory.
+    int64_t overview_reads = 0;      // Overview tiles read from disk to update them.
     int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
     double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
@@ -173,8 +182,9 @@ class IRMOSAIC_EXPORT TileStore {
     double publish_p99_ms = 0.0;    // ... 99th percentile.
     double publish_max_ms = 0.0;    // ... worst.
     size_t cached_tiles = 0;        // Level-0 tiles in memory now.
-    // Level-0 tiles whose images wait in memory for the next overview update (at most
-    // 4 x max_cached_tiles after each publish, each halved).
+    // Tiles whose images wait in memory for an overview update, under way or next, each halved:
+    // those owed since the last update started are at most 4 x max_cached_tiles after each
+    // publish; an update under way holds at most as many again, and a third more.
     size_t overview_owed_tiles = 0;
     size_t tiles_on_disk = 0;  // Level-0 tiles in the store.
   };
