@@ -49,9 +49,9 @@ struct TileStoreOptions {
   // overview pyramid and the growing frames.gpkg.
   double overview_interval_s = 0.0;
   // With overview_interval_s > 0 an overview update runs between publishes, in slices of at
-  // most this many overview tiles (a level the extent just gained, at most 3 x 3 tiles, in
-  // one): a level-0 publish asked for meanwhile goes first, so the frames' publish latency
-  // waits for one slice, not for the whole pyramid. Early updates (the memory bound below),
+  // most this many overview tiles (a level the extent just gained is built in one): one slice
+  // after each publish and more while no publish is asked for, so a frame's publish waits for
+  // one slice at most, not for the whole pyramid. Early updates (the memory bound below),
   // overview_interval_s 0 and Close() bring the overviews up to date within their publish.
   int overview_slice_tiles = 8;
   // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
