@@ -265,8 +265,8 @@ double ThreadCpuMs() {
 
 // The writer's unit of work, one 512 x 512 UInt16 level-0 tile (cut from the ground, fully
 // covered), on this thread: written to its GeoTIFF (ZSTD 1, the default) and renamed, read back,
-// halved for the overview above. CPU ms per tile, the minimum over `rounds` rounds of `count`
-// operations each (the VM's timing noise).
+// halved for the overview above (into pooled buffers, as the writer does). CPU ms per tile, the
+// minimum over `rounds` rounds of `count` operations each (the VM's timing noise).
 struct TileCost {
   double write_ms = 0, read_ms = 0, halve_ms = 0;
   int64_t bytes = 0;
@@ -285,6 +285,7 @@ TileCost MeasureTileCost(const cv::Mat& ground, int count, int rounds, const fs:
   tile.alpha.setTo(255);
   double gt[6];
   st::TileGeoTransform(0.5, size, 0, {1, 2}, gt);
+  st::TilePools pools(size, irmosaic::PixelType::kUInt16, 4);  // As the writer halves.
   TileCost best{1e30, 1e30, 1e30, 0};
   const fs::path path = dir / "tile.tif";
   for (int round = 0; round < rounds; ++round) {
@@ -295,7 +296,7 @@ TileCost MeasureTileCost(const cv::Mat& ground, int count, int rounds, const fs:
     for (int k = 0; k < count; ++k) st::ReadTile(path, size, irmosaic::PixelType::kUInt16);
     best.read_ms = std::min(best.read_ms, (ThreadCpuMs() - t0) / count);
     t0 = ThreadCpuMs();
-    for (int k = 0; k < count; ++k) st::HalveTile(tile);
+    for (int k = 0; k < count; ++k) st::HalveTile(tile, &pools);
     best.halve_ms = std::min(best.halve_ms, (ThreadCpuMs() - t0) / count);
   }
   fs::remove_all(dir);
