@@ -126,6 +126,7 @@ struct Tuning {
   int heap_trim_interval_frames = -1;
   int tune_heap = -1;  // MosaickerOptions::tune_heap (0 / 1; -1: the library's default).
   int max_cached_tiles = -1;
+  int refresh_slice_tiles = -1;
   int images_in_memory = -1;  // -1: the library's default.
   int ground_cache_mb = -1;   // The simulator's (the benchmark's input), not the pipeline's.
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
@@ -282,6 +283,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   }
   if (g_tuning.writer_nice >= 0) options.writer_nice = g_tuning.writer_nice;
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
+  if (g_tuning.refresh_slice_tiles >= 0) {
+    options.refresh_slice_tiles = g_tuning.refresh_slice_tiles;
+  }
   if (g_tuning.images_in_memory >= 0) options.images_in_memory = g_tuning.images_in_memory;
   if (g_tuning.heap_trim_interval_frames >= 0) {
     options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
@@ -433,6 +437,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"overview_updates", st.overview_updates},
             {"overview_updates_early", st.overview_updates_early},
             {"overview_slices", st.overview_slices},
+            {"refresh_slices", st.refresh_slices},
+            {"refresh_tiles_written", st.refresh_tiles_written},
             {"tile_reloads", st.tile_reloads},
             {"overview_reads", st.overview_reads},
             {"tile_copies", st.tile_copies},
@@ -471,6 +477,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"heap_trim_interval_frames", options.heap_trim_interval_frames},
             {"tune_heap", options.tune_heap},
             {"max_cached_tiles", options.max_cached_tiles},
+            {"refresh_slice_tiles", options.refresh_slice_tiles},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
@@ -751,6 +758,8 @@ int main(int argc, char** argv) {
       g_tuning.heap_trim_interval_frames = std::stoi(value());
     } else if (a == "--max-cached-tiles") {
       g_tuning.max_cached_tiles = std::stoi(value());
+    } else if (a == "--refresh-slice-tiles") {
+      g_tuning.refresh_slice_tiles = std::stoi(value());
     } else if (a == "--images-in-memory") {
       g_tuning.images_in_memory = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
@@ -775,6 +784,7 @@ int main(int argc, char** argv) {
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--overview-interval S] [--tile-size N] "
                    "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
+                   "[--refresh-slice-tiles N] "
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
@@ -914,7 +924,9 @@ int main(int argc, char** argv) {
               << p["publishes"].get<int64_t>() << " (overview updates "
               << p["overview_updates"].get<int64_t>() << ", of them early "
               << p["overview_updates_early"].get<int64_t>() << ", in "
-              << p["overview_slices"].get<int64_t>() << " slices between publishes)\n";
+              << p["overview_slices"].get<int64_t>() << " slices between publishes; refreshed "
+              << p["refresh_tiles_written"].get<int64_t>() << " level-0 tiles in "
+              << p["refresh_slices"].get<int64_t>() << " slices)\n";
   }
 
   if (!compare.empty()) {

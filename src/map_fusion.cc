@@ -669,8 +669,9 @@ class MapFusion::Impl {
 
   // Paints a frame's `image` (its own reference: the producer may release the held one
   // meanwhile) with the part `image_clip` at `placement`.
+  // `refresh`: the frame was painted before (MosaicSink::Repaint).
   void Render(const cv::Mat& image, const std::vector<Eigen::Vector2d>& image_clip,
-              const FramePlacement& placement, Renderer* renderer) {
+              const FramePlacement& placement, Renderer* renderer, bool refresh = false) {
     if (!sink_ || !options_.render) return;
     // The orthoimage and the weights live in the renderer's buffers (no allocation per frame
     // once warm); the gain is applied in place.
@@ -687,7 +688,11 @@ class MapFusion::Impl {
     } else {
       FeatherWeight(out, &weight);
     }
-    sink_->Paint(compensated, weight, out.origin_px);
+    if (refresh) {
+      sink_->Repaint(compensated, weight, out.origin_px);
+    } else {
+      sink_->Paint(compensated, weight, out.origin_px);
+    }
   }
 
   // Seam weight of an undistorted frame: its footprint is the convex quadrilateral of the
@@ -1057,7 +1062,7 @@ class MapFusion::Impl {
         break;
       }
       const cv::Mat image = ImageOf(images[frame->slot]);
-      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer);
+      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer, true);
       {
         std::lock_guard<std::mutex> lock(mu_);
         frame->rendered = placement;

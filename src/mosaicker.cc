@@ -257,6 +257,7 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (writer_nice < 0 || writer_nice > 19) {
     return fail("writer_nice " + std::to_string(writer_nice) + " must be in 0..19");
   }
+  if (refresh_slice_tiles < 0) return fail("refresh_slice_tiles must be >= 0");
   if (max_cached_tiles < 1 || max_cached_tiles > 65536) {
     return fail("max_cached_tiles must be in 1..65536");
   }
@@ -616,6 +617,10 @@ class Mosaicker::Impl : public MosaicSink {
     if (replay_ || !store_) return;
     store_->Paint(image, weight, origin_px);
   }
+  void Repaint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) override {
+    if (replay_ || !store_) return;
+    store_->Paint(image, weight, origin_px, PaintKind::kRefresh);
+  }
   double OutputBacklogSeconds() const override {
     const TileStore* store = StoreView();
     return store ? store->BacklogSeconds() : 0.0;
@@ -773,6 +778,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.compression = options_.compression;
     store_options.overview_interval_s = options_.overview_interval_s;
     store_options.max_cached_tiles = static_cast<size_t>(options_.max_cached_tiles);
+    store_options.refresh_slice_tiles = options_.refresh_slice_tiles;
     store_options.writer_nice = options_.writer_nice;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);

@@ -86,6 +86,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
     problem = "overview_interval_s must be >= 0 seconds";
   } else if (overview_slice_tiles < 1) {
     problem = "overview_slice_tiles must be at least 1";
+  } else if (refresh_slice_tiles < 0) {
+    problem = "refresh_slice_tiles must be >= 0 (0: refreshed tiles go with each publish)";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
   } else if (writer_nice < 0 || writer_nice > 19) {
@@ -237,8 +239,12 @@ struct TileStore::Impl {
   std::condition_variable changed;  // Any of: request, publish done, tile written.
   struct CachedTile {
     TileImage image;
-    bool dirty = false;    // Painted since its last snapshot by the writer.
-    bool writing = false;  // Snapshot taken, file not yet renamed into place: keep in memory.
+    bool dirty = false;  // Painted since its last snapshot by the writer.
+    // Painted since its last snapshot by refreshes only, on disk already: a refresh slice or a
+    // publish writes it (never both dirty and refreshed).
+    bool refreshed = false;
+    uint64_t paint_epoch = 0;  // publish_epoch when last painted.
+    bool writing = false;      // Snapshot taken, file not yet renamed into place: keep in memory.
     // Buffers given to a writer's snapshot: copy before painting while the writer still holds
     // them (it lets go, under the lock, once the tile is on disk and halved for the overviews).
     bool shared = false;
@@ -257,6 +263,12 @@ struct TileStore::Impl {
     return *pools;
   }
   size_t dirty_count = 0;
+  size_t refreshed_count = 0;  // Tiles with `refreshed` set.
+  uint64_t publish_epoch = 0;  // Snapshots taken by publishes so far.
+  // A refresh slice replaced tiles since the last publish's snapshot: the next publish bumps the
+  // generation even with nothing else new, so readers that cache blocks per generation (the
+  // IRMOSAIC plug-in) read them again.
+  bool replaced_since_publish = false;
   uint64_t use_clock = 0;
   store::LevelTiles
       level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
@@ -304,7 +316,21 @@ struct TileStore::Impl {
   std::vector<std::map<TileIndex, TileImage>> cycle_owed;
   std::vector<bool> build_whole;
   bool cycle_paused = false;
-  bool slice_turn = false;  // The writer published last: a slice goes before the next publish.
+  bool slice_turn = false;      // The writer published last: a slice goes before the next publish.
+  bool refresh_turn = false;    // ... and a refresh slice.
+  bool refresh_paused = false;  // A refresh slice failed: none until the next publish.
+  // A refreshed tile is written by a slice once a publish passed since it was last painted, so
+  // that a tile the re-renders keep painting is written no more often than with each publish.
+  bool RefreshReady(const CachedTile& tile) const {
+    return tile.refreshed && tile.paint_epoch < publish_epoch;
+  }
+  bool RefreshRunnable() const {
+    if (refreshed_count == 0 || refresh_paused || options.refresh_slice_tiles == 0) return false;
+    for (const auto& [index, tile] : cache) {
+      if (RefreshReady(tile)) return true;
+    }
+    return false;
+  }
   bool index_owed = false;  // A slice listed new overview tiles that no index names yet.
   bool qlr_owed = false;    // A slice moved the display range the .qlr files hold.
   size_t CycleOwedCount() const {
@@ -339,6 +365,8 @@ struct TileStore::Impl {
                     std::vector<TileImage>* top);
   void FinishOverviewCycle(const store::Manifest& current);
   void OverviewSlice(std::unique_lock<std::mutex>& lock);
+  // Writes up to refresh_slice_tiles refreshed tiles in place (lock held on entry and exit).
+  void RefreshSlice(std::unique_lock<std::mutex>& lock);
   // Widens m's display range by the covered values of `top` (the highest level's tiles); true
   // if it moved enough to rewrite the .qlr files.
   static bool WidenDisplayRange(store::Manifest* m, const std::vector<const TileImage*>& top);
@@ -411,7 +439,7 @@ void TileStore::Impl::EvictLocked() {
   while (cache.size() > options.max_cached_tiles) {
     auto victim = cache.end();
     for (auto it = cache.begin(); it != cache.end(); ++it) {
-      if (it->second.dirty || it->second.writing) continue;
+      if (it->second.dirty || it->second.refreshed || it->second.writing) continue;
       if (victim == cache.end() || it->second.last_use < victim->second.last_use) victim = it;
     }
     if (victim == cache.end()) return;  // All wait for the writer.
@@ -704,19 +732,97 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   changed.notify_all();
 }
 
+void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
+  // The tiles painted least recently first: the sweep has left them.
+  std::vector<std::pair<uint64_t, TileIndex>> order;
+  for (const auto& [index, tile] : cache) {
+    if (RefreshReady(tile)) order.emplace_back(tile.last_use, index);
+  }
+  const size_t n = std::min(order.size(), static_cast<size_t>(options.refresh_slice_tiles));
+  std::partial_sort(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(n), order.end());
+  std::map<TileIndex, TileImage> images;
+  for (size_t k = 0; k < n; ++k) {
+    CachedTile& tile = cache.at(order[k].second);
+    images[order[k].second] = tile.image;  // Shared as a publish's snapshot is.
+    tile.shared = true;
+    tile.writing = true;
+    tile.refreshed = false;
+    --refreshed_count;
+  }
+  lock.unlock();
+  const Clock::time_point start = Clock::now();
+  const double cpu_start_ms = ThreadCpuMs();
+  int64_t bytes = 0, tiles = 0;
+  std::string error;
+  try {
+    // Listed tiles replaced in place, as overview tiles are: no index to write, the generation
+    // stays. Their overviews take them with the next update.
+    double gt[6];
+    for (const auto& [index, image] : images) {
+      store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
+      bytes += store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+      ++tiles;
+      overview_owed[index] = store::HalveTile(image, &Pools());
+      lock.lock();
+      auto it = cache.find(index);
+      if (it != cache.end()) it->second.writing = false;
+      changed.notify_all();
+      lock.unlock();
+    }
+  } catch (const Error& e) {
+    error = e.what();
+  } catch (const std::exception& e) {
+    error = std::string("unexpected failure while writing refreshed tiles: ") + e.what();
+  }
+  ReleaseSnapshot(&images, lock);
+  const double busy_ms = MsSince(start);
+  const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  lock.lock();
+  if (!error.empty()) {
+    // What was not written waits again; the next publish reports a condition that persists.
+    refresh_paused = true;
+    for (auto& [index, tile] : cache) {
+      if (!tile.writing) continue;
+      tile.writing = false;
+      if (!tile.dirty && !tile.refreshed) {
+        tile.refreshed = true;
+        ++refreshed_count;
+      }
+    }
+  }
+  ++stats.refresh_slices;
+  stats.refresh_tiles_written += tiles;
+  replaced_since_publish = replaced_since_publish || tiles > 0;
+  stats.writer_busy_ms += busy_ms;
+  stats.writer_cpu_ms += cpu_ms;
+  stats.tiles_written += tiles;
+  stats.bytes_written += bytes;
+  stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
+  stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
+  EvictLocked();
+  changed.notify_all();
+}
+
 void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock) {
   cycle_paused = false;  // A slice that failed tries again after this publish.
   // 1. Snapshot what changed, under the lock (memory copies only).
   std::map<TileIndex, TileImage> level0;
+  // Refreshed tiles wait for slices, unless closing or too many wait (memory: they stay cached).
+  const bool take_refreshed = closing || refreshed_count > options.max_cached_tiles;
+  refresh_paused = false;
+  replaced_since_publish = false;
+  ++publish_epoch;
   for (auto& [index, tile] : cache) {
-    if (!tile.dirty) continue;
+    if (!tile.dirty && !(take_refreshed && tile.refreshed)) continue;
     // Copy-on-write: the snapshot shares the buffers (no copy under the lock); the next Paint
     // into this tile copies them first.
     level0[index] = tile.image;
     tile.shared = true;
-    tile.dirty = false;
     tile.writing = true;
-    --dirty_count;
+    if (tile.dirty) --dirty_count;
+    if (tile.refreshed) --refreshed_count;
+    tile.dirty = false;
+    tile.refreshed = false;
   }
   // Overviews and frames.gpkg at most every overview_interval_s after the last update ended,
   // and always when closing, or sooner when more than kOwedPerCachedTile x max_cached_tiles
@@ -898,6 +1004,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
         if (!tile.dirty) {
           tile.dirty = true;
           ++dirty_count;
+          if (tile.refreshed) {
+            tile.refreshed = false;
+            --refreshed_count;
+          }
         }
       }
     }
@@ -914,19 +1024,28 @@ void TileStore::Impl::WriterLoop() {
   LowerThisThreadPriority(options.writer_nice);
   std::unique_lock<std::mutex> lock(mutex);
   for (;;) {
-    changed.wait(
-        lock, [&] { return stop || requested_generation > started_generation || CycleRunnable(); });
-    // An overview update under way takes one slice after each publish, and all the time the
-    // writer has between publishes: a publish waits for one slice at most, and the update
-    // ends within as many publishes as it has slices even when the writer is never idle.
-    if (requested_generation > started_generation && !(slice_turn && CycleRunnable())) {
+    changed.wait(lock, [&] {
+      return stop || requested_generation > started_generation || CycleRunnable() ||
+             RefreshRunnable();
+    });
+    // Refreshed tiles and an overview update under way take one slice each after each
+    // publish, and all the time the writer has between publishes: a publish waits for two
+    // slices at most, and the work ends within as many publishes as it has slices even when
+    // the writer is never idle.
+    const bool refresh_now = RefreshRunnable() && refresh_turn;
+    const bool overview_now = CycleRunnable() && slice_turn;
+    if (requested_generation > started_generation && !refresh_now && !overview_now) {
       started_generation = requested_generation;
       PublishOnce(started_generation, lock);
       slice_turn = true;
+      refresh_turn = true;
       continue;
     }
     if (stop && requested_generation <= started_generation) return;
-    if (CycleRunnable()) {
+    if (RefreshRunnable() && (refresh_now || !overview_now)) {
+      RefreshSlice(lock);
+      refresh_turn = false;
+    } else if (CycleRunnable()) {
       OverviewSlice(lock);
       slice_turn = false;
     }
@@ -1093,7 +1212,8 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }
 
-void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) {
+void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px,
+                      PaintKind kind) {
   Impl& s = *impl_;
   if (s.read_only) {
     throw Error("TileStore::Paint on a store opened read-only (" + s.options.path + ")");
@@ -1159,9 +1279,23 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
                                      tile_roi);
           break;
       }
-      if (painted && !tile.dirty) {
+      if (!painted) continue;
+      tile.paint_epoch = s.publish_epoch;
+      // A refresh of a tile on disk may wait for a refresh slice; anything else goes out with
+      // the next publish.
+      if (kind == PaintKind::kRefresh && s.options.refresh_slice_tiles > 0 &&
+          s.level0_on_disk.count({row, col})) {
+        if (!tile.dirty && !tile.refreshed) {
+          tile.refreshed = true;
+          ++s.refreshed_count;  // Ready after the next publish, which wakes the writer.
+        }
+      } else if (!tile.dirty) {
         tile.dirty = true;
         ++s.dirty_count;
+        if (tile.refreshed) {
+          tile.refreshed = false;
+          --s.refreshed_count;
+        }
       }
     }
   }
@@ -1241,9 +1375,11 @@ int64_t TileStore::RequestPublish() {
   if (s.requested_generation > s.started_generation) return s.requested_generation;
   // Nothing new since the writer's last snapshot: that generation already holds it all.
   // Closing, an overview update still under way needs the last publish too (it finishes it).
-  const bool changed = s.dirty_count > 0 || !s.frames_changed.empty() || s.application_dirty ||
-                       s.secondary_owed || s.failed_generation >= s.started_generation ||
-                       (s.closing && s.stats.overviews_pending);
+  // Refreshed tiles wait for a publish too: those painted before it are written after it.
+  const bool changed = s.dirty_count > 0 || s.refreshed_count > 0 || s.replaced_since_publish ||
+                       !s.frames_changed.empty() || s.application_dirty || s.secondary_owed ||
+                       s.failed_generation >= s.started_generation ||
+                       (s.closing && (s.stats.overviews_pending || s.refreshed_count > 0));
   if (!changed) return s.started_generation;
   ++s.requested_generation;
   s.request_time_of[s.requested_generation] = Clock::now();
@@ -1369,6 +1505,7 @@ TileStore::Stats TileStore::stats() const {
     out.publish_max_ms = latencies.back();
   }
   out.cached_tiles = s.cache.size();
+  out.refresh_waiting = s.refreshed_count;
   out.tiles_on_disk = s.level0_on_disk.size();
   return out;
 }

@@ -561,11 +561,19 @@ TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
     std::mutex mu;
     std::map<std::thread::id, std::pair<double, double>> painted;  // min, max painted value
     int wrong = 0, checked = 0;
-    void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point) override {
+    int first_paints = 0, repaints = 0;  // Paint (a frame's first) and Repaint (re-renders).
+    void Record(const cv::Mat& image, const cv::Mat& weight, int* count) {
       double low = 0, high = 0;
       cv::minMaxLoc(image, &low, &high, nullptr, nullptr, weight > 0);
       std::lock_guard<std::mutex> lock(mu);
       painted[std::this_thread::get_id()] = {low, high};
+      ++*count;
+    }
+    void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point) override {
+      Record(image, weight, &first_paints);
+    }
+    void Repaint(const cv::Mat& image, const cv::Mat& weight, cv::Point) override {
+      Record(image, weight, &repaints);
     }
     void FramePlaced(const FramePlacement& p) override {
       std::lock_guard<std::mutex> lock(mu);
@@ -634,6 +642,10 @@ TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
   EXPECT_GT(stats.spill_reads, on_disk_stats.spill_reads);  // Re-renders read too.
   EXPECT_EQ(sink.wrong, 0) << "of " << sink.checked << " frames painted";
   EXPECT_GE(sink.checked, 48 + stats.rerendered_frames);
+  // Each frame is painted once as new; the optimizer's re-renders come as repaints (which a
+  // store may write after new frames: PaintKind::kRefresh).
+  EXPECT_EQ(sink.first_paints, 48);
+  EXPECT_EQ(sink.repaints, stats.rerendered_frames);
   EXPECT_TRUE(stats.spill_error.empty()) << stats.spill_error;
   std::filesystem::remove_all(dir);
 }

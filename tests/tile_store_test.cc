@@ -58,11 +58,11 @@ TileStoreOptions Options(const fs::path& path, int tile_size = 256) {
   return options;
 }
 
-void PaintSquare(TileStore* store, cv::Point top_left, int size, double value,
-                 float weight = 1.0f) {
+void PaintSquare(TileStore* store, cv::Point top_left, int size, double value, float weight = 1.0f,
+                 PaintKind kind = PaintKind::kNew) {
   cv::Mat image(size, size, CvDepthOf(store->pixel_type()), cv::Scalar(value));
   cv::Mat w(size, size, CV_32F, cv::Scalar(weight));
-  store->Paint(image, w, top_left);
+  store->Paint(image, w, top_left, kind);
 }
 
 // Counts GDAL failures of this thread while alive.
@@ -902,7 +902,10 @@ TEST(TileStoreTest, TilesOwedToDeferredOverviewsStayBounded) {
 // ThreadSanitizer: a writer that dropped its snapshot outside the lock was reported racing with
 // the painter's copy of a shared tile when the copy fell in the publish's overview phase.
 // overview_interval_s 0: overviews within every publish; > 0: in slices between publishes.
-void PaintDuringPublishes(const std::string& name, double overview_interval_s) {
+// PaintKind::kRefresh: the tile is repainted as the optimizer's re-renders are, so a refresh
+// slice after each publish writes it (in place) while the painter copies it.
+void PaintDuringPublishes(const std::string& name, double overview_interval_s,
+                          PaintKind kind = PaintKind::kNew) {
   const fs::path dir = FreshDir(name) / "s.irmosaic";
   TileStoreOptions options = Options(dir, 64);
   options.pixel_type = PixelType::kByte;
@@ -918,16 +921,21 @@ void PaintDuringPublishes(const std::string& name, double overview_interval_s) {
   const auto publish_time = std::chrono::steady_clock::now() - start;
   // Paint tile (0, 0), publish, and paint it again at a moment that sweeps the publish from its
   // start to its end: the second paint copies the tile while the writer still holds it.
+  // A refresh slice runs after the publish: the sweep spans both.
+  const int sweep = kind == PaintKind::kRefresh ? 2 : 1;
   int last = 0;
   for (int i = 0; i < 40; ++i) {
-    PaintSquare(store.get(), {0, 0}, 64, 10 + 2 * i);
+    PaintSquare(store.get(), {0, 0}, 64, 10 + 2 * i, 1.0f, kind);
     const int64_t generation = store->RequestPublish();
-    std::this_thread::sleep_for(publish_time * (i % 20) / 20);
+    std::this_thread::sleep_for(publish_time * sweep * (i % 20) / 20);
     last = 11 + 2 * i;
-    PaintSquare(store.get(), {0, 0}, 64, last);
+    PaintSquare(store.get(), {0, 0}, 64, last, 1.0f, kind);
     store->WaitPublished(generation);
   }
   store->WaitPublished(store->RequestPublish());
+  if (kind == PaintKind::kRefresh) {
+    EXPECT_GT(store->stats().refresh_slices, 0) << "no refresh slice ran";
+  }
   cv::Mat image, coverage;
   store->ReadWindow({0, 0, 64, 64}, &image, &coverage);
   EXPECT_EQ(cv::countNonZero(image == last), 64 * 64);
@@ -948,6 +956,108 @@ TEST(TileStoreTest, PaintingDuringPublishesKeepsTheLastPaintedValues) {
 
 TEST(TileStoreTest, PaintingDuringOverviewSlicesKeepsTheLastPaintedValues) {
   PaintDuringPublishes("paint_slices", 0.001);
+}
+
+TEST(TileStoreTest, PaintingDuringRefreshSlicesKeepsTheLastPaintedValues) {
+  PaintDuringPublishes("paint_refresh", 0.001, PaintKind::kRefresh);
+}
+
+// Everything a store holds in tile (row, col) of a level-0 window read through GDAL is `value`.
+void ExpectTileHolds(const Raster& r, int tile, int row, int col, int value) {
+  ASSERT_FALSE(r.data.empty());
+  const cv::Rect area(col * tile, row * tile, tile, tile);
+  ASSERT_TRUE((area & cv::Rect(0, 0, r.data.cols, r.data.rows)) == area);
+  EXPECT_EQ(cv::countNonZero(r.data(area) == value), tile * tile)
+      << "tile (" << row << ", " << col << ") should hold " << value;
+}
+
+// Refreshes (PaintKind::kRefresh, the optimizer's re-renders) of tiles on disk are not written
+// by the publish after them but by refresh slices right after it, in place: the generation
+// stays, and the publish carries only new content (and refreshes of tiles not yet on disk, which
+// need listing). Close writes what still waits.
+TEST(TileStoreTest, RefreshedTilesAreWrittenInSlicesAfterThePublish) {
+  constexpr int kTile = 64;
+  const fs::path dir = FreshDir("refresh") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, kTile);
+  options.pixel_type = PixelType::kByte;
+  options.refresh_slice_tiles = 1;
+  auto store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {0, 0}, 2 * kTile, 1);  // Tiles (0, 0), (0, 1), (1, 0), (1, 1).
+  store->WaitPublished(store->RequestPublish());
+  const TileStore::Stats before = store->stats();
+  // (0, 0) and (0, 1) refreshed; (1, 0) painted anew; (0, 2), not on disk yet, refreshed.
+  const auto paint = [&](cv::Rect area, int value, PaintKind kind) {
+    store->Paint(cv::Mat(area.size(), CV_8U, cv::Scalar(value)),
+                 cv::Mat(area.size(), CV_32F, cv::Scalar(1.0f)), area.tl(), kind);
+  };
+  paint({0, 0, 2 * kTile, kTile}, 2, PaintKind::kRefresh);
+  paint({0, kTile, kTile, kTile}, 3, PaintKind::kNew);
+  paint({2 * kTile, 0, kTile, kTile}, 4, PaintKind::kRefresh);
+  EXPECT_EQ(store->stats().refresh_waiting, 2u);
+  const int64_t generation = store->RequestPublish();
+  store->WaitPublished(generation);
+  // The slices follow the publish, one tile each.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (store->stats().refresh_tiles_written - before.refresh_tiles_written < 2 &&
+         std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  TileStore::Stats after = store->stats();
+  EXPECT_EQ(after.refresh_tiles_written - before.refresh_tiles_written, 2);
+  EXPECT_EQ(after.refresh_slices - before.refresh_slices, 2);
+  EXPECT_EQ(after.refresh_waiting, 0u);
+  // At level 0 the publish wrote (1, 0) and (0, 2) only; the slices the two refreshed tiles.
+  EXPECT_EQ((after.tiles_written - after.overview_tiles_written) -
+                (before.tiles_written - before.overview_tiles_written),
+            4);
+  EXPECT_EQ(store->published_generation(), generation);
+  {
+    const Raster r = ReadThroughGdal(dir / "mosaic.vrt");
+    EXPECT_EQ(r.generation, generation);
+    ExpectTileHolds(r, kTile, 0, 0, 2);
+    ExpectTileHolds(r, kTile, 0, 1, 2);
+    ExpectTileHolds(r, kTile, 1, 0, 3);
+    ExpectTileHolds(r, kTile, 1, 1, 1);
+    ExpectTileHolds(r, kTile, 0, 2, 4);
+  }
+  // A refresh with nothing new still asks for a publish (the slices follow publishes), and one
+  // left waiting is written by Close.
+  paint({kTile, kTile, kTile, kTile}, 5, PaintKind::kRefresh);
+  EXPECT_GT(store->RequestPublish(), generation);
+  paint({0, 0, kTile, kTile}, 6, PaintKind::kRefresh);
+  store->Close();
+  const Raster r = ReadThroughGdal(dir / "mosaic.vrt");
+  ExpectTileHolds(r, kTile, 1, 1, 5);
+  ExpectTileHolds(r, kTile, 0, 0, 6);
+}
+
+// More refreshed tiles waiting than max_cached_tiles (they stay in memory until written): the
+// publish takes them all. refresh_slice_tiles 0: every publish takes every refresh.
+TEST(TileStoreTest, RefreshedTilesGoWithThePublishBeyondTheBoundOrWhenSlicesAreOff) {
+  constexpr int kTile = 64;
+  for (const int slice_tiles : {1, 0}) {
+    SCOPED_TRACE("refresh_slice_tiles " + std::to_string(slice_tiles));
+    const fs::path dir = FreshDir("refresh_bound_" + std::to_string(slice_tiles)) / "s.irmosaic";
+    TileStoreOptions options = Options(dir, kTile);
+    options.pixel_type = PixelType::kByte;
+    options.max_cached_tiles = 4;
+    options.refresh_slice_tiles = slice_tiles;
+    auto store = TileStore::Open(options, Georef());
+    // One row of 6 tiles (fewer than twice the bound: painting does not wait for the writer).
+    const cv::Size row(6 * kTile, kTile);
+    store->Paint(cv::Mat(row, CV_8U, cv::Scalar(1)), cv::Mat(row, CV_32F, cv::Scalar(1.0f)),
+                 {0, 0});
+    store->WaitPublished(store->RequestPublish());
+    store->Paint(cv::Mat(row, CV_8U, cv::Scalar(7)), cv::Mat(row, CV_32F, cv::Scalar(1.0f)), {0, 0},
+                 PaintKind::kRefresh);
+    EXPECT_EQ(store->stats().refresh_waiting, slice_tiles > 0 ? 6u : 0u);
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(store->stats().refresh_tiles_written, 0);
+    EXPECT_EQ(store->stats().refresh_waiting, 0u);
+    const Raster r = ReadThroughGdal(dir / "mosaic.vrt");
+    for (int col = 0; col < 6; ++col) ExpectTileHolds(r, kTile, 0, col, 7);
+    store->Close();
+  }
 }
 
 // Publishes until the store's overviews are up to date (a client's periodic RequestPublish starts

@@ -70,6 +70,11 @@ class IRMOSAIC_EXPORT MosaicSink {
   // Blends `image` (the frame's pixel type, gain applied) with weight CV_32F in [0, 1] at
   // mosaic pixel `origin_px`: out = w * image + (1 - w) * existing.
   virtual void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) = 0;
+  // The same for a frame painted before, again at a refined placement or radiometry (the
+  // optimizer's re-renders): a sink may publish it after new frames. Default: Paint.
+  virtual void Repaint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px) {
+    Paint(image, weight, origin_px);
+  }
   // A frame was placed or moved.
   virtual void FramePlaced(const FramePlacement& placement) = 0;
   // How far the output is behind what was painted, seconds (0: keeping up): background

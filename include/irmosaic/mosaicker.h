@@ -89,6 +89,10 @@ struct MosaickerOptions {
   // tile_size^2 x (sample size + 1) bytes (768 KiB at 512 and 16 bits); fewer means more tiles
   // read back from disk (docs/benchmarks.md, "Session 12").
   int max_cached_tiles = 64;
+  // The optimizer's re-renders reach the disk in slices between publishes, at most this many
+  // tiles each, so that a publish carries new frames only (TileStoreOptions::refresh_slice_tiles;
+  // 0: with the next publish, as new frames).
+  int refresh_slice_tiles = 8;
   // Frame images the fusion keeps in memory (FusionOptions::images_in_memory, which this
   // replaces): the newest N; the older ones it still holds for re-rendering (up to the
   // optimization window, 300 frames) wait in an unnamed file in the store folder, deleted with

@@ -29,6 +29,10 @@ struct StoreGeoreference {
   std::string crs_wkt;  // The plane's CRS, LocalFrame::CrsWkt().
 };
 
+// What a Paint brings: new content (a frame placed for the first time), or a refresh of content
+// already there (a frame re-rendered at a refined placement), which may reach the disk later.
+enum class PaintKind { kNew, kRefresh };
+
 // Configuration of a TileStore.
 struct TileStoreOptions {
   std::string path;  // The store folder, e.g. out/flight.irmosaic.
@@ -54,6 +58,13 @@ struct TileStoreOptions {
   // one slice at most, not for the whole pyramid. Early updates (the memory bound below),
   // overview_interval_s 0 and Close() bring the overviews up to date within their publish.
   int overview_slice_tiles = 8;
+  // Tiles a refresh (Paint with PaintKind::kRefresh: the optimizer's re-renders) changed, and
+  // nothing new since their last write, are written between publishes, in slices of at most this
+  // many tiles (one slice after each publish, more while no publish is asked for), in place: a
+  // publish carries the tiles of new frames only, so their latency does not include a solve's
+  // burst of re-rendered tiles. More than max_cached_tiles such tiles waiting, or Close(), and
+  // the publish takes them all. 0: every publish writes every changed tile.
+  int refresh_slice_tiles = 8;
   // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
   // early when more than 4 times this many tiles wait for them (halved).
   size_t max_cached_tiles = 64;
@@ -111,8 +122,10 @@ class IRMOSAIC_EXPORT TileStore {
   // mosaic pixel origin_px (signed). Tiles under the patch where every weight is 0 are not
   // touched (not loaded, created or copied). Thread-safe. Blocks on disk only to reload a tile
   // that left memory, or when more than twice max_cached_tiles tiles wait for the writer
-  // (back-pressure).
-  void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px);
+  // (back-pressure). kRefresh: see TileStoreOptions::refresh_slice_tiles (a tile not yet on disk
+  // is published with the next generation either way).
+  void Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin_px,
+             PaintKind kind = PaintKind::kNew);
 
   // Inserts or replaces (by index) a frame's footprint record; published with the next
   // generation.
@@ -170,8 +183,13 @@ class IRMOSAIC_EXPORT TileStore {
     // Slices of overview work the writer ran between publishes (overview_slice_tiles).
     int64_t overview_slices = 0;
     bool overviews_pending = false;  // An overview update is under way or tiles wait for one.
-    int64_t tile_reloads = 0;        // Tiles read back from disk after leaving memory.
-    int64_t overview_reads = 0;      // Overview tiles read from disk to update them.
+    // Slices of refreshed tiles the writer ran between publishes, and the tiles they wrote
+    // (refresh_slice_tiles; counted in tiles_written too); refreshed tiles waiting now.
+    int64_t refresh_slices = 0;
+    int64_t refresh_tiles_written = 0;
+    size_t refresh_waiting = 0;
+    int64_t tile_reloads = 0;    // Tiles read back from disk after leaving memory.
+    int64_t overview_reads = 0;  // Overview tiles read from disk to update them.
     int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
     double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
