@@ -450,6 +450,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
             {"rerendered_frames", s.fusion.rerendered_frames},
             {"deferred_rerenders", s.fusion.deferred_rerenders},
+            {"radiometric_rerenders", s.fusion.radiometric_rerenders},
+            {"rerender_candidates", s.fusion.rerender_candidates},
             {"oldest_neighbour_frames", oldest_neighbour},
             {"held_images", s.fusion.held_images},
             {"held_image_mib", static_cast<double>(s.fusion.held_image_bytes) / 1048576.0},

@@ -1027,6 +1027,8 @@ class MapFusion::Impl {
             std::max(options_.rerender_threshold_px, 1e-9);
         const double score = std::max(shift, radiometry);
         if (score > 1.0) {
+          stats_.rerender_candidates += 1;
+          if (shift <= 1.0) stats_.radiometric_rerenders += 1;
           candidates.emplace_back(score, moved.size());
           moved.emplace_back(f, live);
         }

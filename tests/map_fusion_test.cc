@@ -646,6 +646,10 @@ TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
   // store may write after new frames: PaintKind::kRefresh).
   EXPECT_EQ(sink.first_paints, 48);
   EXPECT_EQ(sink.repaints, stats.rerendered_frames);
+  // Every frame re-rendered or deferred was a candidate of its solve; gains are not estimated
+  // here, so none was for radiometry alone.
+  EXPECT_GE(stats.rerender_candidates, stats.rerendered_frames + stats.deferred_rerenders);
+  EXPECT_EQ(stats.radiometric_rerenders, 0);
   EXPECT_TRUE(stats.spill_error.empty()) << stats.spill_error;
   std::filesystem::remove_all(dir);
 }

@@ -169,6 +169,11 @@ struct FusionStats {
   // Re-renders a background solve chose but left to the next one because the output was
   // behind (FusionOptions::max_output_backlog_s).
   int64_t deferred_rerenders = 0;
+  // Frames solves found to need a re-render (counted at each solve that finds them: rendered,
+  // deferred or over the budget), and of them those for their gain or offset alone (moved less
+  // than rerender_threshold_px).
+  int64_t rerender_candidates = 0;
+  int64_t radiometric_rerenders = 0;
   // What the mosaic on disk lags behind the placements after each background solve's
   // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
   // seam lag (the base frame's move since painted less the template's, at the overlap), and
