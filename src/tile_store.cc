@@ -15,6 +15,7 @@
 #include <cstring>
 #include <ctime>
 #include <deque>
+#include <functional>
 #include <limits>
 #include <list>
 #include <mutex>
@@ -112,6 +113,29 @@ double MsSince(Clock::time_point start) {
 }
 
 // Largest number of overview levels a tile size allows (T must stay divisible by 2^levels).
+// The writer's time on a piece of work and its failure, if any ("unexpected failure while
+// <what>: ..." for one that is not the store's own Error).
+struct TimedWork {
+  double busy_ms = 0.0;
+  double cpu_ms = 0.0;
+  std::string error;
+};
+TimedWork RunTimed(const char* what, const std::function<void()>& work) {
+  const Clock::time_point start = Clock::now();
+  const double cpu_start_ms = ThreadCpuMs();
+  TimedWork out;
+  try {
+    work();
+  } catch (const Error& e) {
+    out.error = e.what();
+  } catch (const std::exception& e) {
+    out.error = std::string("unexpected failure while ") + what + ": " + e.what();
+  }
+  out.busy_ms = MsSince(start);
+  out.cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  return out;
+}
+
 int MaxLevelsFor(int tile_size) {
   int levels = 0;
   while (levels < 16 && tile_size % (2 << levels) == 0 && (tile_size >> (levels + 1)) >= 8) {
@@ -367,6 +391,10 @@ struct TileStore::Impl {
   void OverviewSlice(std::unique_lock<std::mutex>& lock);
   // Writes up to refresh_slice_tiles refreshed tiles in place (lock held on entry and exit).
   void RefreshSlice(std::unique_lock<std::mutex>& lock);
+  // Writes a level-0 tile of a snapshot (lock not held on entry), then under the lock notes it
+  // on disk and lets its cached tile go; returns the file's size.
+  int64_t WriteLevel0Tile(const TileIndex& index, const TileImage& image,
+                          std::unique_lock<std::mutex>& lock);
   // Widens m's display range by the covered values of `top` (the highest level's tiles); true
   // if it moved enough to rewrite the .qlr files.
   static bool WidenDisplayRange(store::Manifest* m, const std::vector<const TileImage*>& top);
@@ -687,11 +715,8 @@ void TileStore::Impl::FinishOverviewCycle(const store::Manifest& current) {
 
 void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   lock.unlock();
-  const Clock::time_point start = Clock::now();
-  const double cpu_start_ms = ThreadCpuMs();
   int64_t bytes = 0, tiles = 0;
-  std::string error;
-  try {
+  const TimedWork work = RunTimed("updating the overviews", [&] {
     std::vector<TileImage> top;
     const bool done = OverviewStep(&manifest, static_cast<size_t>(options.overview_slice_tiles),
                                    &bytes, &tiles, &top);
@@ -707,20 +732,14 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
       qlr_owed = false;
       FinishOverviewCycle(manifest);
     }
-  } catch (const Error& e) {
-    error = e.what();
-  } catch (const std::exception& e) {
-    error = std::string("unexpected failure while updating the overviews: ") + e.what();
-  }
-  const double busy_ms = MsSince(start);
-  const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  });
   lock.lock();
   // A failed slice (a full disk) keeps what it owed and waits for the next publish, which
   // reports the condition if it persists, instead of retrying in a loop.
-  if (!error.empty()) cycle_paused = true;
+  if (!work.error.empty()) cycle_paused = true;
   ++stats.overview_slices;
-  stats.writer_busy_ms += busy_ms;
-  stats.writer_cpu_ms += cpu_ms;
+  stats.writer_busy_ms += work.busy_ms;
+  stats.writer_cpu_ms += work.cpu_ms;
   stats.tiles_written += tiles;
   stats.overview_tiles_written += tiles;
   stats.bytes_written += bytes;
@@ -730,6 +749,20 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
   stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
   changed.notify_all();
+}
+
+int64_t TileStore::Impl::WriteLevel0Tile(const TileIndex& index, const TileImage& image,
+                                         std::unique_lock<std::mutex>& lock) {
+  double gt[6];
+  store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
+  const int64_t bytes = store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+  lock.lock();
+  level0_on_disk.insert(index);
+  auto it = cache.find(index);
+  if (it != cache.end()) it->second.writing = false;
+  changed.notify_all();
+  lock.unlock();
+  return bytes;
 }
 
 void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
@@ -750,35 +783,19 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
     --refreshed_count;
   }
   lock.unlock();
-  const Clock::time_point start = Clock::now();
-  const double cpu_start_ms = ThreadCpuMs();
   int64_t bytes = 0, tiles = 0;
-  std::string error;
-  try {
+  const TimedWork work = RunTimed("writing refreshed tiles", [&] {
     // Listed tiles replaced in place, as overview tiles are: no index to write, the generation
     // stays. Their overviews take them with the next update.
-    double gt[6];
     for (const auto& [index, image] : images) {
-      store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
-      bytes += store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+      bytes += WriteLevel0Tile(index, image, lock);
       ++tiles;
       overview_owed[index] = store::HalveTile(image, &Pools());
-      lock.lock();
-      auto it = cache.find(index);
-      if (it != cache.end()) it->second.writing = false;
-      changed.notify_all();
-      lock.unlock();
     }
-  } catch (const Error& e) {
-    error = e.what();
-  } catch (const std::exception& e) {
-    error = std::string("unexpected failure while writing refreshed tiles: ") + e.what();
-  }
+  });
   ReleaseSnapshot(&images, lock);
-  const double busy_ms = MsSince(start);
-  const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
   lock.lock();
-  if (!error.empty()) {
+  if (!work.error.empty()) {
     // What was not written waits again; the next publish reports a condition that persists.
     refresh_paused = true;
     for (auto& [index, tile] : cache) {
@@ -793,8 +810,8 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
   ++stats.refresh_slices;
   stats.refresh_tiles_written += tiles;
   replaced_since_publish = replaced_since_publish || tiles > 0;
-  stats.writer_busy_ms += busy_ms;
-  stats.writer_cpu_ms += cpu_ms;
+  stats.writer_busy_ms += work.busy_ms;
+  stats.writer_cpu_ms += work.cpu_ms;
   stats.tiles_written += tiles;
   stats.bytes_written += bytes;
   stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
@@ -873,17 +890,9 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::vector<TileIndex> added;
   try {
     // 2. Level-0 tiles, each to a temporary name then renamed.
-    double gt[6];
     for (const auto& [index, image] : level0) {
-      store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
-      bytes += store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+      bytes += WriteLevel0Tile(index, image, lock);
       ++tiles_written;
-      lock.lock();
-      level0_on_disk.insert(index);
-      auto it = cache.find(index);
-      if (it != cache.end()) it->second.writing = false;
-      changed.notify_all();
-      lock.unlock();
     }
     // The published manifest changes only once the index is written.
     std::vector<store::LevelTiles> sets;
