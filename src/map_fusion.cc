@@ -1064,7 +1064,8 @@ class MapFusion::Impl {
         break;
       }
       const cv::Mat image = ImageOf(images[frame->slot]);
-      if (!image.empty()) Render(image, frame->data.image_clip, placement, renderer, true);
+      if (!image.empty())
+        Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
       {
         std::lock_guard<std::mutex> lock(mu_);
         frame->rendered = placement;
