@@ -11,6 +11,7 @@
 #include "buffer_view.h"
 #include "cubic_weights.h"
 #include "irmosaic/error.h"
+#include "square_erosion.h"
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -27,21 +28,6 @@ bool UsableImage(const cv::Mat& image) {
 
 bool UsableMask(const cv::Mat& mask, const cv::Mat& image) {
   return mask.empty() || (mask.type() == CV_8UC1 && mask.size() == image.size());
-}
-
-// For each pixel of `region` (which keeps a margin of `half` inside the mask's image): 255 when
-// the square of half-size `half` around it lies entirely inside the mask (always, for an empty
-// mask), else 0. A square erosion of the overlap only, instead of an integral image of the
-// whole mask and a box sum per pixel.
-cv::Mat SquaresInsideMask(const cv::Mat& mask, const cv::Rect& region, int half) {
-  if (mask.empty()) return cv::Mat(region.size(), CV_8U, cv::Scalar(255));
-  const cv::Rect outer(region.x - half, region.y - half, region.width + 2 * half,
-                       region.height + 2 * half);
-  cv::Mat binary, eroded;
-  cv::compare(mask(outer), 0, binary, cv::CMP_NE);
-  cv::erode(binary, eroded,
-            cv::getStructuringElement(cv::MORPH_RECT, cv::Size(2 * half + 1, 2 * half + 1)));
-  return eroded(cv::Rect(half, half, region.width, region.height));
 }
 
 // Integral image of (mask != 0), or empty for an empty mask (all valid).
@@ -237,6 +223,21 @@ LsmOptions LevelLsmOptions(const LsmOptions& o, int level) {
   return l;
 }
 
+// The key-point options at a pyramid level: the corner pre-blur less what cv::pyrDown's
+// kernel already blurred (variance 1 full-resolution pixel^2 per level), block and spacing in
+// that level's pixels.
+KeypointOptions LevelKeypointOptions(const KeypointOptions& o, int level) {
+  if (level == 0) return o;
+  const double f = std::ldexp(1.0, level);
+  const double pyramid_variance = (f * f - 1.0) / 3.0;  // 1 at level 1, 5 at level 2.
+  KeypointOptions l = o;
+  l.presmooth_sigma_px =
+      std::sqrt(std::max(0.0, o.presmooth_sigma_px * o.presmooth_sigma_px - pyramid_variance)) / f;
+  l.block_size = std::max(3, (static_cast<int>(o.block_size / f)) | 1);
+  l.min_distance_px = o.min_distance_px / f;
+  return l;
+}
+
 // `r` grown by `by` on every side and clipped to `bounds`, its origin moved only by even
 // amounts: the region keeps the parity of r's corner, so a pyrDown of it samples the image at
 // the same points wherever the image sits in a larger canvas.
@@ -259,14 +260,16 @@ cv::Rect GrowKeepingParity(const cv::Rect& r, int by, const cv::Rect& bounds) {
 }  // namespace
 
 FineRegistrar::FineRegistrar(FineRegistrationOptions options)
-    : options_(std::move(options)), lsm_([&] {
+    : options_(std::move(options)),
+      lsm_([&] {
         std::string error;
         if (!options_.IsValid(&error)) {
           throw InputError(SourceLocation{"FineRegistrationOptions", 0, 0, ""}, error,
                            "fix the option");
         }
         return LevelLsmOptions(options_.lsm, options_.lsm_level);
-      }()) {}
+      }()),
+      level_keypoints_(LevelKeypointOptions(options_.keypoints, options_.lsm_level)) {}
 
 PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& base_mask,
                                          const cv::Mat& templ, const cv::Mat& templ_mask,
@@ -364,21 +367,24 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   Eigen::Matrix3d level_from_local = Eigen::Matrix3d::Identity();
   level_from_local.topLeftCorner<2, 2>() /= level_scale;
 
-  // The key points and the gain see the valid box only (plus the margin the corner response
-  // reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two equal, or
-  // points near the window's edge would change): no scans of the whole orthoimage for the box.
+  // At level 0 the key points and the gain see the valid box only (plus the margin the corner
+  // response reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two
+  // equal, or points near the window's edge would change): no scans of the whole orthoimage
+  // for the box. At level 1 both run on the half-resolution copies, which hold only the
+  // region around the box.
   std::vector<Eigen::Vector2d> keypoints;
-  if (!valid_box.empty()) {
-    const KeypointOptions& k = options_.keypoints;
-    const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
-    const cv::Rect window = (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
-                            cv::Rect(0, 0, templ.cols, templ.rows);
-    keypoints = DetectKeypoints(templ_f_(window - templ_origin_), valid_(window), k);
-    for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
-  }
-  if (options_.equalize_gain) EqualizeGain(valid_box, dx, dy);
-  out.keypoints = static_cast<int>(keypoints.size());
+  templ_noise_scale_ = 1.0;
   if (level == 0) {
+    if (!valid_box.empty()) {
+      const KeypointOptions& k = options_.keypoints;
+      const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
+      const cv::Rect window =
+          (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
+          cv::Rect(0, 0, templ.cols, templ.rows);
+      keypoints = DetectKeypoints(templ_f_(window - templ_origin_), valid_(window), k);
+      for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
+    }
+    if (options_.equalize_gain) EqualizeGain(valid_box, dx, dy);
     base_l_ = base_f_;
     templ_l_ = templ_f_;
   } else {
@@ -387,7 +393,24 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     templ_l_ = BufferView(&templ_l_backing_, half_size(templ_f_), CV_32F);
     cv::pyrDown(base_f_, base_l_, base_l_.size());
     cv::pyrDown(templ_f_, templ_l_, templ_l_.size());
+    // The valid pixels that are level pixels (copy pixel 2k): the copies' origins keep the
+    // parity of the valid box's corner, so the box's level pixels are exactly these.
+    valid_l_ = BufferView(&valid_l_backing_, templ_l_.size(), CV_8U);
+    for (int y = 0; y < valid_l_.rows; ++y) {
+      const unsigned char* src =
+          valid_.ptr<unsigned char>(templ_origin_.y + 2 * y) + templ_origin_.x;
+      unsigned char* dst = valid_l_.ptr<unsigned char>(y);
+      for (int x = 0; x < valid_l_.cols; ++x) dst[x] = src[2 * x];
+    }
+    if (!valid_box.empty()) {
+      // Level pixel k is template pixel templ_origin + 2 k: the LSM's template patches then
+      // sit on level pixels, without interpolation.
+      keypoints = DetectKeypoints(templ_l_, valid_l_, level_keypoints_);
+      for (Eigen::Vector2d& p : keypoints) p = templ_origin + level_scale * p;
+    }
+    if (options_.equalize_gain) EqualizeGainAtLevel(valid_box, dx, dy);
   }
+  out.keypoints = static_cast<int>(keypoints.size());
 
   // FLSM: the template projections of the key points serve the single-patch matches and the
   // joint fit alike (the template does not change in between), so they are computed once.
@@ -790,9 +813,11 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   // averages 4), while pyrDown's correlated noise would mislead Immerkaer's estimate.
   cv::Scalar mean, contrast;
   cv::meanStdDev(templ_f_, mean, contrast);
-  const double floor = 0.02 * contrast[0] / f;
+  // templ_noise_scale_: the gain equalisation when it scaled only the level copy.
+  const double floor = 0.02 * contrast[0] * templ_noise_scale_ / f;
   const double sigma_base = std::max(floor, NoiseSigma(base_f_, &noise_row_) / f);
-  const double sigma_templ = std::max(floor, NoiseSigma(templ_f_, &noise_row_) / f);
+  const double sigma_templ =
+      std::max(floor, NoiseSigma(templ_f_, &noise_row_) * templ_noise_scale_ / f);
   const double expected = rhs[0].size() * (sigma_base * sigma_base + sigma_templ * sigma_templ);
   const double scale = std::max(median, expected);
   for (double e : energy) fit.inlier_patches += e <= 4.0 * scale;
@@ -1114,6 +1139,43 @@ void FineRegistrar::EqualizeGain(const cv::Rect& box, int dx, int dy) {
   templ_f_ = (templ_f_ - mean_a[0]) * (std_b[0] / std_a[0]) + mean_b[0];
 }
 
+void FineRegistrar::EqualizeGainAtLevel(const cv::Rect& box, int dx, int dy) {
+  // As EqualizeGain, on the half-resolution copies: pyrDown has blurred by 1 full-resolution
+  // pixel already, the rest of the blur is applied in level pixels. The gain goes into the
+  // level copy the LSM reads; the full-resolution template (read afterwards only for its noise
+  // and contrast, and by the dense fit) is scaled too when the dense fit may run, else its
+  // figures are scaled instead.
+  const int f = 1 << options_.lsm_level;
+  const cv::Rect in_base =
+      (box + cv::Point(dx, dy)) & (cv::Rect(0, 0, base_f_.cols, base_f_.rows) + base_origin_);
+  if (box.area() < 100 || in_base.size() != box.size()) return;
+  auto level_rect = [f](const cv::Rect& r, cv::Point origin) {
+    const cv::Point tl((r.x - origin.x) / f, (r.y - origin.y) / f);
+    return cv::Rect(
+        tl, cv::Point((r.br().x - origin.x + f - 1) / f, (r.br().y - origin.y + f - 1) / f));
+  };
+  const cv::Rect t = level_rect(box, templ_origin_) & cv::Rect(0, 0, templ_l_.cols, templ_l_.rows);
+  const cv::Rect b = level_rect(in_base, base_origin_) & cv::Rect(0, 0, base_l_.cols, base_l_.rows);
+  if (t.size() != b.size() || t.area() < 4) return;
+  const double sigma = options_.gain_blur_sigma_px;
+  const double pyramid_variance = (f * f - 1.0) / 3.0;
+  const double level_sigma = std::sqrt(std::max(0.25, sigma * sigma - pyramid_variance)) / f;
+  cv::Mat a, c;
+  cv::GaussianBlur(templ_l_(t), a, cv::Size(), level_sigma);
+  cv::GaussianBlur(base_l_(b), c, cv::Size(), level_sigma);
+  cv::Scalar mean_a, std_a, mean_c, std_c;
+  cv::meanStdDev(a, mean_a, std_a, valid_l_(t));
+  cv::meanStdDev(c, mean_c, std_c, valid_l_(t));
+  if (!(std_a[0] > 1e-6 && std_c[0] > 1e-6)) return;
+  const double scale = std_c[0] / std_a[0], shift = mean_c[0] - mean_a[0] * scale;
+  templ_l_.convertTo(templ_l_, CV_32F, scale, shift);
+  if (options_.dense_refinement) {
+    templ_f_.convertTo(templ_f_, CV_32F, scale, shift);
+  } else {
+    templ_noise_scale_ = scale;
+  }
+}
+
 double CornerRmse(const Eigen::Matrix3d& a, const Eigen::Matrix3d& b, const cv::Rect2d& rect) {
   double sum_sq = 0.0;
   const Eigen::Vector2d corners[4] = {{rect.x, rect.y},
@@ -1140,8 +1202,10 @@ PairRegistrationOptions PipelineRegistrationOptions() {
   o.fine.dense_refinement = false;
   // Noisy pairs take their homography from the joint fit, which starts from the single-patch
   // tie points' RANSAC fit: stopping those at 0.01 px instead of 0.005 px moved the pair
-  // homographies of 120 sample-flight pairs by at most 0.0001 px, for fewer LSM iterations.
-  o.fine.lsm.convergence_px = 0.01;
+  // homographies of 120 sample-flight pairs by at most 0.0001 px, for fewer LSM iterations;
+  // 0.02 px moved those of 200 pairs by at most 0.00002 px, for 6 % less CPU per pair (0.05:
+  // no faster) (docs/benchmarks.md, "Session 23").
+  o.fine.lsm.convergence_px = 0.02;
   // The coarse SCD peak (quarter resolution) seeds the LSM, which refines the translation
   // anyway: against the simulator's truth on 200 pairs of the sample flight, registered from
   // the coarse peak the homographies were as accurate over the overlap (median corner error

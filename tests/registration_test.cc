@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "../src/square_erosion.h"
 #include "irmosaic/error.h"
 #include "registration_pairs.h"
 #include "test_data.h"
@@ -172,6 +173,52 @@ TEST(FineRegistration, PipelineConfigurationAtFullResolutionIsIndependentOfWhere
   FineRegistrationOptions level0 = PipelineRegistrationOptions().fine;
   level0.lsm_level = 0;
   ExpectIndependentOfCanvas(level0);
+}
+
+// The run-per-row erosion (src/square_erosion.h) against cv::erode: convex footprints (the
+// fast path), a mask with a hole and one with two runs in a row (cv::erode itself), empty and
+// full rows, squares wider than some runs, regions touching the mask's edges.
+TEST(SquareErosion, EqualsCvErode) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  int fast = 0;
+  for (int trial = 0; trial < 60; ++trial) {
+    cv::Mat mask = cv::Mat::zeros(180 + trial, 240 - trial, CV_8U);
+    // A random quadrilateral footprint, convex (a perspective image of a rectangle).
+    std::vector<cv::Point> quad;
+    const double cx = mask.cols * (0.3 + 0.4 * u(rng)), cy = mask.rows * (0.3 + 0.4 * u(rng));
+    const double angle = 6.283 * u(rng), rx = 20 + 120 * u(rng), ry = 10 + 90 * u(rng);
+    for (int k = 0; k < 4; ++k) {
+      const double a = angle + k * 1.5708, stretch = 0.7 + 0.6 * u(rng);
+      quad.emplace_back(static_cast<int>(cx + stretch * rx * std::cos(a)),
+                        static_cast<int>(cy + stretch * ry * std::sin(a)));
+    }
+    std::vector<cv::Point> hull;
+    cv::convexHull(quad, hull);
+    cv::fillConvexPoly(mask, hull, cv::Scalar(1 + trial % 255));  // Any non-zero value.
+    const bool convex = trial % 3 != 0;
+    if (!convex) {
+      // Two runs in some rows: a notch or a hole.
+      cv::circle(mask, cv::Point(static_cast<int>(cx), static_cast<int>(cy)), 4 + trial % 9,
+                 cv::Scalar(0), cv::FILLED);
+    }
+    const int half = 1 + trial % 17;
+    const cv::Rect region(half, half + trial % 5, mask.cols - 2 * half,
+                          mask.rows - 2 * half - trial % 5);
+    cv::Mat binary, eroded;
+    cv::compare(mask, 0, binary, cv::CMP_NE);
+    cv::erode(binary, eroded,
+              cv::getStructuringElement(cv::MORPH_RECT, cv::Size(2 * half + 1, 2 * half + 1)),
+              cv::Point(-1, -1), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+    const cv::Mat expected = eroded(region);
+    const cv::Mat got = SquaresInsideMask(mask, region, half);
+    ASSERT_EQ(got.size(), region.size());
+    EXPECT_EQ(cv::countNonZero(got != expected), 0) << "trial " << trial << ", half " << half;
+    if (convex) fast += cv::countNonZero(expected) > 0;
+  }
+  EXPECT_GE(fast, 30);  // Most convex footprints keep some pixels.
+  // An empty mask: everything valid.
+  EXPECT_EQ(cv::countNonZero(SquaresInsideMask(cv::Mat(), cv::Rect(0, 0, 7, 5), 3)), 35);
 }
 
 TEST(FineRegistration, LsmLevelIsChecked) {

@@ -165,6 +165,8 @@ class IRMOSAIC_EXPORT FineRegistrar {
  private:
   // `box`: bounding box of valid_ (template pixels); (dx, dy): the offset to the base.
   void EqualizeGain(const cv::Rect& box, int dx, int dy);
+  // The same on the lsm_level copies (base_l_, templ_l_, valid_l_).
+  void EqualizeGainAtLevel(const cv::Rect& box, int dx, int dy);
   struct JointFit {
     int patches = 0, inlier_patches = 0;
     double sigma_px = 1e9, residual_ratio = 1e9;
@@ -197,6 +199,13 @@ class IRMOSAIC_EXPORT FineRegistrar {
   // What the FLSM reads: base_f_ and templ_f_ at lsm_level 0, their pyrDown halves at 1 (pixel
   // (0, 0) centred on the float copy's pixel (0, 0); level pixel k is copy pixel 2k).
   cv::Mat base_l_, templ_l_, base_l_backing_, templ_l_backing_;
+  // valid_ at the level pixels of templ_l_ (lsm_level > 0).
+  cv::Mat valid_l_, valid_l_backing_;
+  // Key-point options in lsm_level pixels (detection runs on templ_l_ at level > 0).
+  KeypointOptions level_keypoints_;
+  // Factor on templ_f_'s noise and contrast: the gain equalisation's scale when it was applied
+  // to templ_l_ only (1 otherwise).
+  double templ_noise_scale_ = 1.0;
   std::vector<cv::Mat> templ_levels_, base_levels_;  // Dense fit pyramids (scratch).
   cv::Mat smoothed_;
   std::vector<float> dense_rows_;  // Dense fit samples (scratch).
