@@ -619,6 +619,41 @@ void FineRegistrar::MarkInliers(PairRegistration* out, double* sum_sq) const {
 // smooth texture; the mean absolute response gives the noise sigma. The mask is separable
 // ([1 -2 1] down, then across), so one pass with a row buffer does it: no response image the
 // size of the orthoimage, no second pass for its absolute value and mean.
+// Standard deviation of a CV_32F image's pixels (what cv::meanStdDev gives, to rounding):
+// sums of the values less the first pixel's, in float lanes per row and doubles across rows,
+// so the shift keeps the squares small for images far from zero (16-bit thermal) and the lanes
+// let the compiler vectorise; cv::meanStdDev took 3-5 % of a pair's CPU.
+static double StandardDeviation(const cv::Mat& image_f) {
+  const int rows = image_f.rows, cols = image_f.cols;
+  if (rows < 1 || cols < 1) return 0.0;
+  const float ref = image_f.at<float>(0, 0);
+  constexpr int kLanes = 8;
+  double sum = 0.0, sum_sq = 0.0;
+  for (int y = 0; y < rows; ++y) {
+    const float* p = image_f.ptr<float>(y);
+    float s[kLanes] = {}, q[kLanes] = {};
+    int x = 0;
+    for (; x + kLanes <= cols; x += kLanes) {
+      for (int k = 0; k < kLanes; ++k) {
+        const float v = p[x + k] - ref;
+        s[k] += v;
+        q[k] += v * v;
+      }
+    }
+    double row_s = 0.0, row_q = 0.0;
+    for (; x < cols; ++x) {
+      const double v = static_cast<double>(p[x]) - ref;
+      row_s += v;
+      row_q += v * v;
+    }
+    for (int k = 0; k < kLanes; ++k) row_s += s[k], row_q += q[k];
+    sum += row_s;
+    sum_sq += row_q;
+  }
+  const double n = static_cast<double>(rows) * cols, mean = sum / n;
+  return std::sqrt(std::max(0.0, sum_sq / n - mean * mean));
+}
+
 static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer) {
   const int rows = image_f.rows, cols = image_f.cols;
   if (rows < 3 || cols < 3) return 0.0;
@@ -674,17 +709,19 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   JointFit fit;
   const int r = lsm_.patch_radius_px();
   std::vector<Eigen::Vector2d> points;
-  std::vector<Eigen::MatrixXd> designs;
+  // The patches' template projections: the caller's, or computed here into `own`.
+  std::vector<const Eigen::MatrixXd*> designs;
+  std::vector<Eigen::MatrixXd> own;
+  if (projected == nullptr) own.resize(keypoints.size());
   Eigen::Vector2d centre = Eigen::Vector2d::Zero();
   for (size_t i = 0; i < keypoints.size(); ++i) {
     const Eigen::Vector2d& p = keypoints[i];
     if (projected != nullptr) {
       if (!(*projected_ok)[i]) continue;
-      designs.push_back((*projected)[i]);
+      designs.push_back(&(*projected)[i]);
     } else {
-      Eigen::MatrixXd design;
-      if (!lsm_.ProjectTemplate(templ_l_, p, &design)) continue;
-      designs.push_back(design);
+      if (!lsm_.ProjectTemplate(templ_l_, p, &own[i])) continue;
+      designs.push_back(&own[i]);
     }
     points.push_back(p);
     centre += p;
@@ -723,52 +760,62 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   const double f = std::ldexp(1.0, options_.lsm_level);
   const std::array<double, 8> prior_sigma = DistortionPriorSigma(
       options_.prior_linear_sigma, options_.prior_perspective_sigma_per_px * f);
-  std::vector<Eigen::Matrix<double, Eigen::Dynamic, 8>> rows;
-  std::vector<Eigen::VectorXd> rhs;
-  std::vector<double> energy;
+  // Each linearised patch's rows (its filter equations in the 8 parameters) and right-hand
+  // side, stacked: patch k's are rows [k n, (k + 1) n) of `rows` and `rhs`.
+  const int n = static_cast<int>(designs.empty() ? 0 : designs[0]->rows());
+  Eigen::Matrix<double, Eigen::Dynamic, 8> rows(static_cast<Eigen::Index>(points.size()) * n, 8);
+  Eigen::VectorXd rhs(rows.rows());
+  std::vector<double> energy, sorted;
+  energy.reserve(points.size());
+  Eigen::VectorXd responses;
   // Linearises all patches at x; returns the median patch residual energy.
   auto linearise = [&](const Params& v) {
-    rows.clear(), rhs.clear(), energy.clear();
+    energy.clear();
     const Eigen::Matrix3d h = to_homography(v);
     const double eps = 1e-6;
+    std::array<Eigen::Matrix3d, 8> perturbed;
+    for (int k = 0; k < 8; ++k) {
+      Params vk = v;
+      vk(k) += eps;
+      perturbed[k] = to_homography(vk);
+    }
     for (size_t i = 0; i < points.size(); ++i) {
       Eigen::Vector2d c;
       Eigen::Matrix2d m;
       local(h, points[i], &c, &m);
-      Eigen::VectorXd responses;
       if (!lsm_.ProjectBase(base_l_, c, m, &responses)) continue;
       const Eigen::Matrix2d m_inv = m.inverse();
       Eigen::Matrix<double, 6, 8> chain;
       for (int k = 0; k < 8; ++k) {
-        Params vk = v;
-        vk(k) += eps;
         Eigen::Vector2d ck;
         Eigen::Matrix2d mk;
-        local(to_homography(vk), points[i], &ck, &mk);
+        local(perturbed[k], points[i], &ck, &mk);
         // Inverse composition: a local increment (d, D) moves c by -M d and M by -M D.
         const Eigen::Vector2d d = -m_inv * (ck - c) / eps;
         const Eigen::Matrix2d big_d = -m_inv * (mk - m) / eps;
         chain.col(k) << d.x(), big_d(0, 0) * r, big_d(0, 1) * r, d.y(), big_d(1, 0) * r,
             big_d(1, 1) * r;
       }
-      rows.push_back(designs[i].leftCols(6) * chain);
-      rhs.push_back(responses - designs[i].col(6));
-      energy.push_back(rhs.back().squaredNorm());
+      const Eigen::Index at = static_cast<Eigen::Index>(energy.size()) * n;
+      rows.middleRows(at, n).noalias() = designs[i]->leftCols(6) * chain;
+      rhs.segment(at, n) = responses - designs[i]->col(6);
+      energy.push_back(rhs.segment(at, n).squaredNorm());
     }
     if (energy.empty()) return 0.0;
-    std::vector<double> sorted = energy;
+    sorted = energy;
     std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
     return std::max(1e-12, sorted[sorted.size() / 2]);
   };
   Eigen::Matrix<double, 8, 8> normal;
   auto normal_equations = [&](const Params& v, double median, Params* gradient) {
-    const double equation_variance = median / rhs[0].size();
+    const double equation_variance = median / n;
     normal.setZero();
     gradient->setZero();
-    for (size_t i = 0; i < rows.size(); ++i) {
+    for (size_t i = 0; i < energy.size(); ++i) {
       const double w = 1.0 / (1.0 + energy[i] / (9.0 * median)) / equation_variance;
-      normal += w * rows[i].transpose() * rows[i];
-      *gradient += w * rows[i].transpose() * rhs[i];
+      const auto block = rows.middleRows(static_cast<Eigen::Index>(i) * n, n);
+      normal += w * block.transpose() * block;
+      *gradient += w * block.transpose() * rhs.segment(static_cast<Eigen::Index>(i) * n, n);
     }
     for (int k = 0; k < 8; ++k) {
       if (prior_sigma[k] <= 0) continue;
@@ -779,7 +826,7 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   const Params start = x;
   for (int iteration = 0; iteration < options_.joint_iterations; ++iteration) {
     const double median = linearise(x);
-    if (rows.size() < 4) return fit;
+    if (energy.size() < 4) return fit;
     Params gradient;
     normal_equations(x, median, &gradient);
     const Params step = normal.ldlt().solve(gradient);
@@ -800,7 +847,7 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   }
   // Figures at the solution.
   const double median = linearise(x);
-  fit.patches = static_cast<int>(rows.size());
+  fit.patches = static_cast<int>(energy.size());
   if (fit.patches < 4) return fit;
   Params gradient;
   normal_equations(x, median, &gradient);
@@ -811,14 +858,12 @@ FineRegistrar::JointFit FineRegistrar::JointRefine(const std::vector<Eigen::Vect
   // Both from the full-resolution copies: at level 1 the orthonormal filters' responses, to
   // the texture and to white noise alike, are half those at full resolution (a level pixel
   // averages 4), while pyrDown's correlated noise would mislead Immerkaer's estimate.
-  cv::Scalar mean, contrast;
-  cv::meanStdDev(templ_f_, mean, contrast);
   // templ_noise_scale_: the gain equalisation when it scaled only the level copy.
-  const double floor = 0.02 * contrast[0] * templ_noise_scale_ / f;
+  const double floor = 0.02 * StandardDeviation(templ_f_) * templ_noise_scale_ / f;
   const double sigma_base = std::max(floor, NoiseSigma(base_f_, &noise_row_) / f);
   const double sigma_templ =
       std::max(floor, NoiseSigma(templ_f_, &noise_row_) * templ_noise_scale_ / f);
-  const double expected = rhs[0].size() * (sigma_base * sigma_base + sigma_templ * sigma_templ);
+  const double expected = n * (sigma_base * sigma_base + sigma_templ * sigma_templ);
   const double scale = std::max(median, expected);
   for (double e : energy) fit.inlier_patches += e <= 4.0 * scale;
   fit.residual_ratio = median / std::max(expected, 1e-6);
