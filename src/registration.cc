@@ -223,21 +223,6 @@ LsmOptions LevelLsmOptions(const LsmOptions& o, int level) {
   return l;
 }
 
-// The key-point options at a pyramid level: the corner pre-blur less what cv::pyrDown's
-// kernel already blurred (variance 1 full-resolution pixel^2 per level), block and spacing in
-// that level's pixels.
-KeypointOptions LevelKeypointOptions(const KeypointOptions& o, int level) {
-  if (level == 0) return o;
-  const double f = std::ldexp(1.0, level);
-  const double pyramid_variance = (f * f - 1.0) / 3.0;  // 1 at level 1, 5 at level 2.
-  KeypointOptions l = o;
-  l.presmooth_sigma_px =
-      std::sqrt(std::max(0.0, o.presmooth_sigma_px * o.presmooth_sigma_px - pyramid_variance)) / f;
-  l.block_size = std::max(3, (static_cast<int>(o.block_size / f)) | 1);
-  l.min_distance_px = o.min_distance_px / f;
-  return l;
-}
-
 // `r` grown by `by` on every side and clipped to `bounds`, its origin moved only by even
 // amounts: the region keeps the parity of r's corner, so a pyrDown of it samples the image at
 // the same points wherever the image sits in a larger canvas.
@@ -260,16 +245,14 @@ cv::Rect GrowKeepingParity(const cv::Rect& r, int by, const cv::Rect& bounds) {
 }  // namespace
 
 FineRegistrar::FineRegistrar(FineRegistrationOptions options)
-    : options_(std::move(options)),
-      lsm_([&] {
+    : options_(std::move(options)), lsm_([&] {
         std::string error;
         if (!options_.IsValid(&error)) {
           throw InputError(SourceLocation{"FineRegistrationOptions", 0, 0, ""}, error,
                            "fix the option");
         }
         return LevelLsmOptions(options_.lsm, options_.lsm_level);
-      }()),
-      level_keypoints_(LevelKeypointOptions(options_.keypoints, options_.lsm_level)) {}
+      }()) {}
 
 PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& base_mask,
                                          const cv::Mat& templ, const cv::Mat& templ_mask,
@@ -367,48 +350,50 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   Eigen::Matrix3d level_from_local = Eigen::Matrix3d::Identity();
   level_from_local.topLeftCorner<2, 2>() /= level_scale;
 
-  // At level 0 the key points and the gain see the valid box only (plus the margin the corner
-  // response reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two
-  // equal, or points near the window's edge would change): no scans of the whole orthoimage
-  // for the box. At level 1 both run on the half-resolution copies, which hold only the
-  // region around the box.
+  // The key points and the gain see the valid box only (plus the margin the corner response
+  // reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two equal, or
+  // points near the window's edge would change): no scans of the whole orthoimage for the box.
+  // Key points at full resolution at every level: detected on the half-resolution copy
+  // instead, the pairs against the truth were as accurate (600 pipeline pairs: median 0.357
+  // px against 0.359) but the flight's placements were not (750 frames at 25 fps: mean 1.124
+  // px against 1.068-1.074) (docs/benchmarks.md, "Session 23").
   std::vector<Eigen::Vector2d> keypoints;
+  if (!valid_box.empty()) {
+    const KeypointOptions& k = options_.keypoints;
+    const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
+    const cv::Rect window = (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
+                            cv::Rect(0, 0, templ.cols, templ.rows);
+    keypoints = DetectKeypoints(templ_f_(window - templ_origin_), valid_(window), k);
+    for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
+  }
   templ_noise_scale_ = 1.0;
   if (level == 0) {
-    if (!valid_box.empty()) {
-      const KeypointOptions& k = options_.keypoints;
-      const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
-      const cv::Rect window =
-          (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
-          cv::Rect(0, 0, templ.cols, templ.rows);
-      keypoints = DetectKeypoints(templ_f_(window - templ_origin_), valid_(window), k);
-      for (Eigen::Vector2d& p : keypoints) p += Eigen::Vector2d(window.x, window.y);
-    }
     if (options_.equalize_gain) EqualizeGain(valid_box, dx, dy);
     base_l_ = base_f_;
     templ_l_ = templ_f_;
   } else {
+    // The gain at the level needs the two copies' level pixels to meet the same template and
+    // base pixels under the offset: always when the copies keep the valid box's parity (dense
+    // fit off), else only for an even offset; otherwise it is estimated at full resolution.
+    const bool level_gain = (templ_origin_.x + dx - base_origin_.x) % 2 == 0 &&
+                            (templ_origin_.y + dy - base_origin_.y) % 2 == 0;
+    if (options_.equalize_gain && !level_gain) EqualizeGain(valid_box, dx, dy);
     auto half_size = [](const cv::Mat& m) { return cv::Size((m.cols + 1) / 2, (m.rows + 1) / 2); };
     base_l_ = BufferView(&base_l_backing_, half_size(base_f_), CV_32F);
     templ_l_ = BufferView(&templ_l_backing_, half_size(templ_f_), CV_32F);
     cv::pyrDown(base_f_, base_l_, base_l_.size());
     cv::pyrDown(templ_f_, templ_l_, templ_l_.size());
-    // The valid pixels that are level pixels (copy pixel 2k): the copies' origins keep the
-    // parity of the valid box's corner, so the box's level pixels are exactly these.
-    valid_l_ = BufferView(&valid_l_backing_, templ_l_.size(), CV_8U);
-    for (int y = 0; y < valid_l_.rows; ++y) {
-      const unsigned char* src =
-          valid_.ptr<unsigned char>(templ_origin_.y + 2 * y) + templ_origin_.x;
-      unsigned char* dst = valid_l_.ptr<unsigned char>(y);
-      for (int x = 0; x < valid_l_.cols; ++x) dst[x] = src[2 * x];
+    if (options_.equalize_gain && level_gain) {
+      // The valid pixels that are level pixels (copy pixel 2k).
+      valid_l_ = BufferView(&valid_l_backing_, templ_l_.size(), CV_8U);
+      for (int y = 0; y < valid_l_.rows; ++y) {
+        const unsigned char* src =
+            valid_.ptr<unsigned char>(templ_origin_.y + 2 * y) + templ_origin_.x;
+        unsigned char* dst = valid_l_.ptr<unsigned char>(y);
+        for (int x = 0; x < valid_l_.cols; ++x) dst[x] = src[2 * x];
+      }
+      EqualizeGainAtLevel(valid_box, dx, dy);
     }
-    if (!valid_box.empty()) {
-      // Level pixel k is template pixel templ_origin + 2 k: the LSM's template patches then
-      // sit on level pixels, without interpolation.
-      keypoints = DetectKeypoints(templ_l_, valid_l_, level_keypoints_);
-      for (Eigen::Vector2d& p : keypoints) p = templ_origin + level_scale * p;
-    }
-    if (options_.equalize_gain) EqualizeGainAtLevel(valid_box, dx, dy);
   }
   out.keypoints = static_cast<int>(keypoints.size());
 

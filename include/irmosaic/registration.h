@@ -201,8 +201,6 @@ class IRMOSAIC_EXPORT FineRegistrar {
   cv::Mat base_l_, templ_l_, base_l_backing_, templ_l_backing_;
   // valid_ at the level pixels of templ_l_ (lsm_level > 0).
   cv::Mat valid_l_, valid_l_backing_;
-  // Key-point options in lsm_level pixels (detection runs on templ_l_ at level > 0).
-  KeypointOptions level_keypoints_;
   // Factor on templ_f_'s noise and contrast: the gain equalisation's scale when it was applied
   // to templ_l_ only (1 otherwise).
   double templ_noise_scale_ = 1.0;
