@@ -16,8 +16,10 @@
 // homography between the two orthoimages is O_b * M_b^-1 * M_t * O_t^-1 (O: the orthoimage's
 // ortho_from_image, M: the simulator's true mosaic_from_image); the error of a result is the
 // RMS over the 4 corners of the true overlap's box (template pixels whose true image falls on
-// the base's data) of |H * c - H_true * c|, base pixels. The replayed pipeline results are also
-// compared with what the Mosaicker got (they must agree: the capture is faithful).
+// the base's data) of |H * c - H_true * c|, base pixels; the JSON keeps each accepted pair's
+// signed errors at those corners too (`corner_errors`: [x, y, error x, error y] per corner), to
+// look for biases the RMS hides. The replayed pipeline results are also compared with what the
+// Mosaicker got (they must agree: the capture is faithful).
 #include <unistd.h>
 
 #include <Eigen/Dense>
@@ -372,9 +374,17 @@ int main(int argc, char** argv) {
       if (m.name == "pipeline" && ok == p.pipeline_ok && ok && p.has_overlap) {
         max_vs_pipeline = std::max(max_vs_pipeline, CornerRms(h, p.pipeline_h, p.corners));
       }
+      nlohmann::json signed_errors = nlohmann::json::array();
+      if (ok && p.has_overlap) {
+        for (const Eigen::Vector2d& c : p.corners) {
+          const Eigen::Vector2d e = Apply(h, c) - Apply(p.truth, c);
+          signed_errors.push_back({c.x(), c.y(), e.x(), e.y()});
+        }
+      }
       per_pair.push_back({{"base", p.base},
                           {"template", p.templ},
                           {"ok", ok},
+                          {"corner_errors", signed_errors},
                           {"error_px", ok ? nlohmann::json(error) : nlohmann::json(nullptr)},
                           {"cpu_ms", best},
                           {"details", details}});
