@@ -600,10 +600,6 @@ void FineRegistrar::MarkInliers(PairRegistration* out, double* sum_sq) const {
   }
 }
 
-// Immerkaer's noise estimate: the image convolved with a mask that cancels planes and most
-// smooth texture; the mean absolute response gives the noise sigma. The mask is separable
-// ([1 -2 1] down, then across), so one pass with a row buffer does it: no response image the
-// size of the orthoimage, no second pass for its absolute value and mean.
 // Standard deviation of a CV_32F image's pixels (what cv::meanStdDev gives, to rounding):
 // sums of the values less the first pixel's, in float lanes per row and doubles across rows,
 // so the shift keeps the squares small for images far from zero (16-bit thermal) and the lanes
@@ -639,6 +635,10 @@ static double StandardDeviation(const cv::Mat& image_f) {
   return std::sqrt(std::max(0.0, sum_sq / n - mean * mean));
 }
 
+// Immerkaer's noise estimate: the image convolved with a mask that cancels planes and most
+// smooth texture; the mean absolute response gives the noise sigma. The mask is separable
+// ([1 -2 1] down, then across), so one pass with a row buffer does it: no response image the
+// size of the orthoimage, no second pass for its absolute value and mean.
 static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer) {
   const int rows = image_f.rows, cols = image_f.cols;
   if (rows < 3 || cols < 3) return 0.0;
