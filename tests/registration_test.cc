@@ -101,7 +101,7 @@ TEST(FineRegistration, HalfResolutionWithTheDenseFitMeetsTheIssueBound) {
 }
 
 // The Mosaicker's configuration (dense fit off, so the float copies cover only the overlap's
-// valid box; LSM convergence 0.01 px) on the blurred pairs: corner RMSE < 0.3 px in >= 95 % of
+// valid box; LSM convergence 0.02 px) on the blurred pairs: corner RMSE < 0.3 px in >= 95 % of
 // pairs, as with the defaults. With noise at PSNR 30 dB the joint fit decides (the pipeline
 // accepts pairs up to 1 px predicted sigma, which the optimizer weighs): at least 90 %
 // accepted, none accepted beyond the 1 px a seam needs, median under 0.5 px.
