@@ -122,13 +122,18 @@ struct Tuning {
   int optimizer_nice = -1;
   double max_output_backlog_s = -1.0;
   int writer_nice = -1;
-  int lsm_level = -1;  // MosaickerOptions::registration.fine.lsm_level.
+  int lsm_level = -1;               // MosaickerOptions::registration.fine.lsm_level.
+  int keypoints_at_lsm_level = -1;  // ... .fine.keypoints_at_lsm_level (0 / 1).
   int heap_trim_interval_frames = -1;
   int tune_heap = -1;  // MosaickerOptions::tune_heap (0 / 1; -1: the library's default).
   int max_cached_tiles = -1;
   int refresh_slice_tiles = -1;
   int images_in_memory = -1;  // -1: the library's default.
   int ground_cache_mb = -1;   // The simulator's (the benchmark's input), not the pipeline's.
+  // The simulated flight's seed (its noise, POS errors and fractal detail); 0 keeps the
+  // sample flight's own. Another seed is another flight over the same ground: accuracy
+  // comparisons of two builds over a few seeds tell a change from one flight's luck.
+  uint64_t seed = 0;
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
   // not adopted: docs/benchmarks.md. Takes effect with --heap-tuning 0 only: the Mosaicker's
@@ -151,6 +156,7 @@ irmosaic::SynthOptions FlightOptions(int frames) {
       irmosaic::SynthOptions::LoadJson(irmosaic::testing::SamplePath("sample_flight/flight.json"));
   options.frame_count = frames;
   if (g_tuning.ground_cache_mb > 0) options.ground_cache_mb = g_tuning.ground_cache_mb;
+  if (g_tuning.seed > 0) options.seed = g_tuning.seed;
   return options;
 }
 
@@ -277,6 +283,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.registration_threads = g_tuning.registration_threads;
   }
   if (g_tuning.lsm_level >= 0) options.registration.fine.lsm_level = g_tuning.lsm_level;
+  if (g_tuning.keypoints_at_lsm_level >= 0) {
+    options.registration.fine.keypoints_at_lsm_level = g_tuning.keypoints_at_lsm_level != 0;
+  }
   if (g_tuning.optimizer_nice >= 0) options.fusion.optimizer_nice = g_tuning.optimizer_nice;
   if (g_tuning.max_output_backlog_s >= 0.0) {
     options.fusion.max_output_backlog_s = g_tuning.max_output_backlog_s;
@@ -623,7 +632,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    "--heap-tuning",
                                    std::to_string(g_tuning.tune_heap),
                                    "--cv-threads",
-                                   std::to_string(g_tuning.cv_threads)};
+                                   std::to_string(g_tuning.cv_threads),
+                                   "--seed",
+                                   std::to_string(g_tuning.seed)};
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
@@ -754,6 +765,8 @@ int main(int argc, char** argv) {
       g_tuning.writer_nice = std::stoi(value());
     } else if (a == "--lsm-level") {
       g_tuning.lsm_level = std::stoi(value());
+    } else if (a == "--keypoints-at-level") {
+      g_tuning.keypoints_at_lsm_level = std::stoi(value());
     } else if (a == "--heap-tuning") {
       g_tuning.tune_heap = std::stoi(value());
     } else if (a == "--heap-trim-every") {
@@ -775,6 +788,8 @@ int main(int argc, char** argv) {
       std::filesystem::create_directories(g_tuning.malloc_info_dir);
     } else if (a == "--cv-threads") {
       g_tuning.cv_threads = std::stoi(value());
+    } else if (a == "--seed") {
+      g_tuning.seed = std::stoull(value());
     } else if (a == "--child") {
       child = value();
     } else {
@@ -782,7 +797,7 @@ int main(int argc, char** argv) {
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
-                   "[--registration-threads N] [--lsm-level N] "
+                   "[--registration-threads N] [--lsm-level N] [--keypoints-at-level 0|1] "
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--overview-interval S] [--tile-size N] "
                    "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
@@ -790,7 +805,7 @@ int main(int argc, char** argv) {
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
-                   "[--cv-threads N] [--malloc-info DIR] [--exit-before-finish]\n";
+                   "[--cv-threads N] [--seed N] [--malloc-info DIR] [--exit-before-finish]\n";
       return 2;
     }
   }
@@ -836,6 +851,7 @@ int main(int argc, char** argv) {
   doc["machine"] = MachineLine();
   doc["mmap_threshold"] = g_tuning.mmap_threshold;
   doc["cv_threads"] = g_tuning.cv_threads;
+  doc["seed"] = FlightOptions(1).seed;
   std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
 
   if (frames > 0) {

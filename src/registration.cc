@@ -223,6 +223,21 @@ LsmOptions LevelLsmOptions(const LsmOptions& o, int level) {
   return l;
 }
 
+// The key-point options at a pyramid level: the corner pre-blur less what cv::pyrDown's
+// kernel already blurred (variance 1 full-resolution pixel^2 per level), block and spacing in
+// that level's pixels.
+KeypointOptions LevelKeypointOptions(const KeypointOptions& o, int level) {
+  if (level == 0) return o;
+  const double f = std::ldexp(1.0, level);
+  const double pyramid_variance = (f * f - 1.0) / 3.0;  // 1 at level 1, 5 at level 2.
+  KeypointOptions l = o;
+  l.presmooth_sigma_px =
+      std::sqrt(std::max(0.0, o.presmooth_sigma_px * o.presmooth_sigma_px - pyramid_variance)) / f;
+  l.block_size = std::max(3, (static_cast<int>(o.block_size / f)) | 1);
+  l.min_distance_px = o.min_distance_px / f;
+  return l;
+}
+
 // `r` grown by `by` on every side and clipped to `bounds`, its origin moved only by even
 // amounts: the region keeps the parity of r's corner, so a pyrDown of it samples the image at
 // the same points wherever the image sits in a larger canvas.
@@ -245,14 +260,16 @@ cv::Rect GrowKeepingParity(const cv::Rect& r, int by, const cv::Rect& bounds) {
 }  // namespace
 
 FineRegistrar::FineRegistrar(FineRegistrationOptions options)
-    : options_(std::move(options)), lsm_([&] {
+    : options_(std::move(options)),
+      lsm_([&] {
         std::string error;
         if (!options_.IsValid(&error)) {
           throw InputError(SourceLocation{"FineRegistrationOptions", 0, 0, ""}, error,
                            "fix the option");
         }
         return LevelLsmOptions(options_.lsm, options_.lsm_level);
-      }()) {}
+      }()),
+      level_keypoints_(LevelKeypointOptions(options_.keypoints, options_.lsm_level)) {}
 
 PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& base_mask,
                                          const cv::Mat& templ, const cv::Mat& templ_mask,
@@ -353,12 +370,11 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   // The key points and the gain see the valid box only (plus the margin the corner response
   // reads beyond it, as DetectKeypoints computes it in src/keypoints.cc: keep the two equal, or
   // points near the window's edge would change): no scans of the whole orthoimage for the box.
-  // Key points at full resolution at every level: detected on the half-resolution copy
-  // instead, the pairs against the truth were as accurate (600 pipeline pairs: median 0.357
-  // px against 0.359) but the flight's placements were not (750 frames at 25 fps: mean 1.124
-  // px against 1.068-1.074) (docs/benchmarks.md, "Session 23").
+  // Key points at full resolution unless keypoints_at_lsm_level asks for them on the level
+  // copy (below).
   std::vector<Eigen::Vector2d> keypoints;
-  if (!valid_box.empty()) {
+  const bool level_keypoints = level > 0 && options_.keypoints_at_lsm_level;
+  if (!valid_box.empty() && !level_keypoints) {
     const KeypointOptions& k = options_.keypoints;
     const int reach = k.block_size + static_cast<int>(3 * k.presmooth_sigma_px) + 1;
     const cv::Rect window = (valid_box + cv::Size(2 * reach, 2 * reach) - cv::Point(reach, reach)) &
@@ -383,7 +399,7 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     templ_l_ = BufferView(&templ_l_backing_, half_size(templ_f_), CV_32F);
     cv::pyrDown(base_f_, base_l_, base_l_.size());
     cv::pyrDown(templ_f_, templ_l_, templ_l_.size());
-    if (options_.equalize_gain && level_gain) {
+    if ((options_.equalize_gain && level_gain) || level_keypoints) {
       // The valid pixels that are level pixels (copy pixel 2k).
       valid_l_ = BufferView(&valid_l_backing_, templ_l_.size(), CV_8U);
       for (int y = 0; y < valid_l_.rows; ++y) {
@@ -392,7 +408,13 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
         unsigned char* dst = valid_l_.ptr<unsigned char>(y);
         for (int x = 0; x < valid_l_.cols; ++x) dst[x] = src[2 * x];
       }
-      EqualizeGainAtLevel(valid_box, dx, dy);
+    }
+    if (options_.equalize_gain && level_gain) EqualizeGainAtLevel(valid_box, dx, dy);
+    if (level_keypoints && !valid_box.empty()) {
+      // Level pixel k is template pixel templ_origin + 2 k: the LSM's template patches then
+      // sit on level pixels, without interpolation.
+      keypoints = DetectKeypoints(templ_l_, valid_l_, level_keypoints_);
+      for (Eigen::Vector2d& p : keypoints) p = templ_origin + level_scale * p;
     }
   }
   out.keypoints = static_cast<int>(keypoints.size());
@@ -1249,6 +1271,11 @@ PairRegistrationOptions PipelineRegistrationOptions() {
   // foreground's CPU per frame -22 %, frames/s +16 %, the final placements' mean +0.9 %
   // (docs/benchmarks.md, "Session 15").
   o.fine.lsm_level = 1;
+  // Key points on that half-resolution copy too: 1 CPU ms less per pair; over 750-frame
+  // flights of 8 seeds the placements the same (mean 1.116 against 1.118 px, paired
+  // difference -0.003 +- 0.019 px), pipeline CPU per frame -7 % (docs/benchmarks.md,
+  // "Session 24"). One seed alone (the sample's, 7) had looked worse, 1.07 -> 1.12 px.
+  o.fine.keypoints_at_lsm_level = true;
   return o;
 }
 

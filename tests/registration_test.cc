@@ -121,8 +121,17 @@ void ExpectPipelineBound(const FineRegistrationOptions& pipeline) {
 }
 
 TEST(FineRegistration, PipelineConfigurationMeetsTheIssueBound) {
-  // The FLSM on half-resolution copies of the overlap (lsm_level 1).
+  // The FLSM and the key points on half-resolution copies of the overlap (lsm_level 1).
   ExpectPipelineBound(PipelineRegistrationOptions().fine);
+}
+
+TEST(FineRegistration, PipelineConfigurationWithFullResolutionKeyPointsMeetsTheIssueBound) {
+  // The FLSM at half resolution, its key points detected at full resolution (the pipeline's
+  // until session 24).
+  FineRegistrationOptions full_keypoints = PipelineRegistrationOptions().fine;
+  ASSERT_TRUE(full_keypoints.keypoints_at_lsm_level);
+  full_keypoints.keypoints_at_lsm_level = false;
+  ExpectPipelineBound(full_keypoints);
 }
 
 TEST(FineRegistration, PipelineConfigurationAtFullResolutionMeetsTheIssueBound) {

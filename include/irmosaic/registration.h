@@ -55,6 +55,10 @@ struct FineRegistrationOptions {
   // pixels per patch. Key points, positions, sigmas and the homography stay in
   // full-resolution pixels. 0 or 1; FLSM only (docs/matching.md, "In the pipeline").
   int lsm_level = 0;
+  // Key points detected on the lsm_level copy (block, pre-blur and spacing scaled to it; the
+  // points then sit on level pixels, template pixel = origin + 2 k) instead of at full
+  // resolution. No effect at lsm_level 0.
+  bool keypoints_at_lsm_level = false;
   // Scale the template to the base's contrast over the overlap before matching (one gain and
   // offset per pair), measured after a Gaussian blur of this sigma.
   bool equalize_gain = true;
@@ -188,6 +192,7 @@ class IRMOSAIC_EXPORT FineRegistrar {
 
   FineRegistrationOptions options_;
   LsmMatcher lsm_;
+  KeypointOptions level_keypoints_;  // options_.keypoints at lsm_level.
   // Float copies of the parts of base and template the pair reads (whole images when the
   // dense fit may run): base_f_ pixel (0, 0) is base pixel base_origin_, and so for the
   // template. valid_ is in whole-template pixels.
