@@ -623,50 +623,99 @@ AxisOverlap OverlapOnAxis(int t_origin, int t_samples, int step, int b_origin, i
   return o;
 }
 
+// Sums rows y .. y + f - 1 of an integer image over columns 0 .. w - 1 into acc.
+template <typename T>
+void SumRows(const cv::Mat& image, int y, int f, int w, uint32_t* acc) {
+  static_assert(std::is_same_v<T, uint8_t> || std::is_same_v<T, uint16_t>);
+  for (int k = 0; k < f; ++k) {
+    const T* in = image.ptr<T>(y + k);
+    int x = 0;
+#if CV_SIMD128
+    for (; x + 4 <= w; x += 4) {
+      cv::v_uint32x4 v;
+      if constexpr (std::is_same_v<T, uint16_t>) {
+        v = cv::v_load_expand(in + x);
+      } else {
+        v = cv::v_load_expand_q(in + x);
+      }
+      cv::v_store(acc + x, k == 0 ? v : cv::v_load(acc + x) + v);
+    }
+#endif
+    for (; x < w; ++x) acc[x] = (k == 0 ? 0u : acc[x]) + in[x];
+  }
+}
+
+// Sums rows y .. y + f - 1 of a float image over columns 0 .. w - 1 into acc.
+void SumRows(const cv::Mat& image, int y, int f, int w, float* acc) {
+  std::copy_n(image.ptr<float>(y), w, acc);
+  for (int k = 1; k < f; ++k) {
+    const float* in = image.ptr<float>(y + k);
+    int x = 0;
+#if CV_SIMD128
+    for (; x + 4 <= w; x += 4) cv::v_store(acc + x, cv::v_load(acc + x) + cv::v_load(in + x));
+#endif
+    for (; x < w; ++x) acc[x] += in[x];
+  }
+}
+
+// out[j] = scale * (acc[f j] + ... + acc[f j + f - 1]), j < n, summed as ((0 + 1) + (2 + 3))
+// for f = 4 and left to right otherwise.
+template <typename A>
+void SumColumns(const A* acc, int f, int n, float scale, float* out) {
+  int j = 0;
+#if CV_SIMD128
+  if (f == 4) {
+    const cv::v_float32x4 s4 = cv::v_setall_f32(scale);
+    for (; j + 4 <= n; j += 4) {
+      if constexpr (std::is_same_v<A, float>) {
+        cv::v_float32x4 p0, p1, p2, p3;
+        cv::v_load_deinterleave(acc + 4 * j, p0, p1, p2, p3);
+        cv::v_store(out + j, ((p0 + p1) + (p2 + p3)) * s4);
+      } else {
+        cv::v_uint32x4 p0, p1, p2, p3;
+        cv::v_load_deinterleave(acc + 4 * j, p0, p1, p2, p3);
+        const cv::v_uint32x4 sum = (p0 + p1) + (p2 + p3);
+        cv::v_store(out + j, cv::v_cvt_f32(cv::v_reinterpret_as_s32(sum)) * s4);
+      }
+    }
+  }
+#endif
+  for (; j < n; ++j) {
+    A sum = acc[j * f];
+    for (int k = 1; k < f; ++k) sum += acc[j * f + k];
+    out[j] = static_cast<float>(sum) * scale;
+  }
+}
+
 // Reduces image and mask by an integer factor (pixel i covers [f i, f i + f)); a reduced pixel
-// is valid only when all its pixels are.
+// is valid only when all its pixels are. Integer images are summed as integers (exact: at most
+// 64 samples of 16 bits), floats as floats; either way the block mean is INTER_AREA's for an
+// integer factor.
 void Reduce(const cv::Mat& image, const cv::Mat& mask, int factor, cv::Mat* image_small,
-            cv::Mat* mask_small, cv::Mat* scratch, std::vector<float>* row_sum,
+            cv::Mat* mask_small, std::vector<float>* row_sum, std::vector<uint32_t>* row_isum,
             std::vector<uint8_t>* row_min) {
   const int f = factor;
   const cv::Size small(image.cols / f, image.rows / f);
   const int w = small.width * f;
-  cv::Mat source = image;
-  if (image.depth() != CV_32F) {
-    image(cv::Rect(0, 0, w, small.height * f)).convertTo(*scratch, CV_32F);  // Keep fractions.
-    source = *scratch;
-  }
-  // Block means: sum f rows, then f columns (INTER_AREA's result for an integer factor).
   image_small->create(small, CV_32F);
-  row_sum->resize(w);
-  float* acc = row_sum->data();
   const float scale = 1.0f / static_cast<float>(f * f);
+  const int depth = image.depth();
+  if (depth == CV_32F) {
+    row_sum->resize(w);
+  } else {
+    row_isum->resize(w);
+  }
   for (int i = 0; i < small.height; ++i) {
-    std::copy_n(source.ptr<float>(i * f), w, acc);
-    for (int k = 1; k < f; ++k) {
-      const float* in = source.ptr<float>(i * f + k);
-      int x = 0;
-#if CV_SIMD128
-      for (; x + 4 <= w; x += 4) cv::v_store(acc + x, cv::v_load(acc + x) + cv::v_load(in + x));
-#endif
-      for (; x < w; ++x) acc[x] += in[x];
-    }
     float* out = image_small->ptr<float>(i);
-    int j = 0;
-#if CV_SIMD128
-    if (f == 4) {
-      const cv::v_float32x4 s4 = cv::v_setall_f32(scale);
-      for (; j + 4 <= small.width; j += 4) {
-        cv::v_float32x4 p0, p1, p2, p3;
-        cv::v_load_deinterleave(acc + 4 * j, p0, p1, p2, p3);
-        cv::v_store(out + j, ((p0 + p1) + (p2 + p3)) * s4);
-      }
-    }
-#endif
-    for (; j < small.width; ++j) {
-      float s = 0.0f;
-      for (int k = 0; k < f; ++k) s += acc[j * f + k];
-      out[j] = s * scale;
+    if (depth == CV_8U) {
+      SumRows<uint8_t>(image, i * f, f, w, row_isum->data());
+      SumColumns(row_isum->data(), f, small.width, scale, out);
+    } else if (depth == CV_16U) {
+      SumRows<uint16_t>(image, i * f, f, w, row_isum->data());
+      SumColumns(row_isum->data(), f, small.width, scale, out);
+    } else {
+      SumRows(image, i * f, f, w, row_sum->data());
+      SumColumns(row_sum->data(), f, small.width, scale, out);
     }
   }
   if (mask.empty()) {
@@ -690,7 +739,9 @@ void Reduce(const cv::Mat& image, const cv::Mat& mask, int factor, cv::Mat* imag
     }
     uint8_t* out = mask_small->ptr<uint8_t>(i);
     for (int j = 0; j < small.width; ++j) {
-      out[j] = *std::min_element(mn + j * f, mn + j * f + f) != 0 ? 255 : 0;
+      bool all = true;
+      for (int k = 0; k < f; ++k) all &= mn[j * f + k] != 0;
+      out[j] = all ? 255 : 0;
     }
   }
 }
@@ -1380,9 +1431,9 @@ ScdResult ScdMatcher::Match(const cv::Mat& base, const cv::Mat& base_mask, const
       return fail(Status::kTooLittleOverlap, "the images overlap by less than a reduced pixel");
     }
     Reduce(base(b_crop), base_mask.empty() ? cv::Mat() : base_mask(b_crop), f, &base_small_,
-           &base_mask_small_, &reduce_tmp_, &reduce_sum_, &erode_pad_);
+           &base_mask_small_, &reduce_sum_, &reduce_isum_, &erode_pad_);
     Reduce(templ(t_crop), templ_mask.empty() ? cv::Mat() : templ_mask(t_crop), f, &templ_small_,
-           &templ_mask_small_, &reduce_tmp_, &reduce_sum_, &erode_pad_);
+           &templ_mask_small_, &reduce_sum_, &reduce_isum_, &erode_pad_);
     // Template crop pixel i <-> template f i + T0, base crop j <-> base f j + B0, so the full
     // offset is u = f (j - i) + (B0 - T0); the coarse window covers the fine one.
     const cv::Point shift = b_crop.tl() - t_crop.tl();

@@ -123,6 +123,45 @@ TEST(ScdTest, EightAndSixteenBitAgreeWithFloat) {
   EXPECT_LT((r16.offset - r32.offset).norm(), 0.05);
 }
 
+// The coarse search's reduction sums integer images as integers and float images as floats:
+// both sums are exact (at most 64 samples of 16 bits), so the same values given as 8-bit,
+// 16-bit or float images must give the same result to the last bit, at every pyramid factor,
+// with masks, over crops whose widths leave tails for the vector loops.
+TEST(ScdTest, IntegerAndFloatImagesReduceIdentically) {
+  const cv::Mat image = LoadFloat("thermal/seq_1_60_30/1_60_30_0_00020.jpg");
+  const Pair p =
+      CropPair(image, cv::Rect(10, 10, 363, 301), cv::Rect(197, 151, 358, 299), {0, 0}, {0, 0});
+  cv::Mat base_mask(p.base.size(), CV_8U, cv::Scalar(255));
+  cv::Mat templ_mask(p.templ.size(), CV_8U, cv::Scalar(255));
+  cv::circle(base_mask, {40, 250}, 60, cv::Scalar(0), cv::FILLED);
+  cv::rectangle(templ_mask, cv::Rect(301, 0, 57, 41), cv::Scalar(0), cv::FILLED);
+  for (const int factor : {2, 4, 8}) {
+    ScdOptions options;
+    options.pyramid_factor = factor;
+    options.refine_at_full_resolution = false;
+    ScdMatcher matcher(options);
+    for (const bool sixteen : {false, true}) {
+      cv::Mat base_int, templ_int, base_f, templ_f;
+      // 16 bits: the full range (257 x 8-bit values reach 65535).
+      p.base.convertTo(base_int, sixteen ? CV_16U : CV_8U, sixteen ? 257.0 : 1.0);
+      p.templ.convertTo(templ_int, sixteen ? CV_16U : CV_8U, sixteen ? 257.0 : 1.0);
+      base_int.convertTo(base_f, CV_32F);
+      templ_int.convertTo(templ_f, CV_32F);
+      const Eigen::Vector2d prior = p.truth + Eigen::Vector2d(7, -5);
+      const ScdResult ri = matcher.Match(base_int, base_mask, templ_int, templ_mask, prior, 24);
+      const ScdResult rf = matcher.Match(base_f, base_mask, templ_f, templ_mask, prior, 24);
+      SCOPED_TRACE(::testing::Message()
+                   << "factor " << factor << (sixteen ? " 16" : " 8") << "-bit");
+      ASSERT_TRUE(ri.ok() && rf.ok()) << ri.reason << " / " << rf.reason;
+      EXPECT_EQ(ri.offset.x(), rf.offset.x());
+      EXPECT_EQ(ri.offset.y(), rf.offset.y());
+      EXPECT_EQ(ri.peak_ratio, rf.peak_ratio);
+      EXPECT_EQ(ri.overlap_px, rf.overlap_px);
+      EXPECT_LT(Error(rf, p.truth), factor);  // Within one reduced pixel.
+    }
+  }
+}
+
 TEST(ScdTest, GainAndOffsetChangeTheResultByLessThanATenthOfAPixel) {
   const cv::Mat image = LoadFloat("thermal/seq_1_60_30/1_60_30_0_00030.jpg");
   const cv::Rect a(0, 0, 380, 300), b(230, 170, 380, 300);

@@ -209,10 +209,11 @@ class IRMOSAIC_EXPORT ScdMatcher {
     double shift_y = 0.0;
     cv::Mat gx, gy;
   } shift_rows_;
-  std::vector<uint8_t> erode_pad_;  // row scratch of the erosion and the reduction
-  std::vector<float> reduce_sum_;
-  std::vector<float> magnitudes_;  // sample for the median gradient magnitude
-  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_, reduce_tmp_;
+  std::vector<uint8_t> erode_pad_;     // row scratch of the erosion and the reduction
+  std::vector<float> reduce_sum_;      // row sums of the reduction (float images)
+  std::vector<uint32_t> reduce_isum_;  // ... (integer images)
+  std::vector<float> magnitudes_;      // sample for the median gradient magnitude
+  cv::Mat base_small_, templ_small_, base_mask_small_, templ_mask_small_;
   cv::Mat pad_, spec_t_[4], spec_b_[4], spec_num_, spec_den_, spec_ovl_, corr_num_, corr_den_,
       corr_ovl_, score_;
   std::map<std::tuple<int, int, int, int>, cv::Ptr<cv::hal::DFT2D>> dft_plans_;
