@@ -12,6 +12,13 @@
 #if defined(__SSE2__)
 #include <emmintrin.h>
 #endif
+#if defined(__GNUC__) && defined(__x86_64__)
+// AVX2 paths built beside the baseline and chosen at run time (src/simd_dispatch.h).
+#define IRMOSAIC_AVX2_PATHS 1
+#include <immintrin.h>
+#endif
+
+#include "simd_dispatch.h"
 
 namespace irmosaic {
 namespace {
@@ -118,6 +125,102 @@ inline void SplitPositions4(double start, double step, int u, int* whole, __m128
   const __m128 frac_hi = _mm_cvtpd_ps(_mm_sub_pd(hi, _mm_cvtepi32_pd(whole_hi)));
   *fraction = _mm_movelh_ps(frac_lo, frac_hi);
   _mm_storeu_si128(reinterpret_cast<__m128i*>(whole), _mm_unpacklo_epi64(whole_lo, whole_hi));
+}
+#endif
+
+#if IRMOSAIC_AVX2_PATHS
+// CubicWeights4 for 8 offsets: the same operations in the same order (AVX2 without FMA), so
+// each lane is bit-identical to the scalar and SSE2 weights.
+__attribute__((target("avx2"))) inline void CubicWeights8(__m256 t, __m256* w) {
+  const __m256 t2 = _mm256_mul_ps(t, t), t3 = _mm256_mul_ps(t2, t);
+  const __m256 half = _mm256_set1_ps(0.5f), minus_half = _mm256_set1_ps(-0.5f);
+  w[0] = _mm256_sub_ps(_mm256_add_ps(_mm256_mul_ps(minus_half, t3), t2), _mm256_mul_ps(half, t));
+  w[1] = _mm256_add_ps(_mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(1.5f), t3),
+                                     _mm256_mul_ps(_mm256_set1_ps(2.5f), t2)),
+                       _mm256_set1_ps(1.0f));
+  w[2] = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(_mm256_set1_ps(-1.5f), t3),
+                                     _mm256_mul_ps(_mm256_set1_ps(2.0f), t2)),
+                       _mm256_mul_ps(half, t));
+  w[3] = _mm256_sub_ps(_mm256_mul_ps(half, t3), _mm256_mul_ps(half, t2));
+}
+
+// SplitPositions4 for the 8 positions start + step * (u + k), k = 0..7.
+__attribute__((target("avx2"))) inline void SplitPositions8(double start, double step, int u,
+                                                            int* whole, __m256* fraction) {
+  const __m256d steps = _mm256_set1_pd(step), origin = _mm256_set1_pd(start);
+  const __m256d lo =
+      _mm256_add_pd(origin, _mm256_mul_pd(steps, _mm256_set_pd(u + 3, u + 2, u + 1, u)));
+  const __m256d hi =
+      _mm256_add_pd(origin, _mm256_mul_pd(steps, _mm256_set_pd(u + 7, u + 6, u + 5, u + 4)));
+  const __m128i whole_lo = _mm256_cvttpd_epi32(lo), whole_hi = _mm256_cvttpd_epi32(hi);
+  const __m128 frac_lo = _mm256_cvtpd_ps(_mm256_sub_pd(lo, _mm256_cvtepi32_pd(whole_lo)));
+  const __m128 frac_hi = _mm256_cvtpd_ps(_mm256_sub_pd(hi, _mm256_cvtepi32_pd(whole_hi)));
+  *fraction = _mm256_insertf128_ps(_mm256_castps128_ps256(frac_lo), frac_hi, 1);
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(whole), whole_lo);
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(whole + 4), whole_hi);
+}
+
+// out[u] = ((w0 a0[u] + w1 a1[u]) + w2 a2[u]) + w3 a3[u] for u below n rounded down to 8, as
+// the separable warp's SSE2 and scalar loops compute it; returns how many were done.
+__attribute__((target("avx2"))) int Weighted4Avx2(const float* a0, const float* a1, const float* a2,
+                                                  const float* a3, const float* w, int n,
+                                                  float* out) {
+  const __m256 w0 = _mm256_set1_ps(w[0]), w1 = _mm256_set1_ps(w[1]), w2 = _mm256_set1_ps(w[2]),
+               w3 = _mm256_set1_ps(w[3]);
+  int u = 0;
+  for (; u + 8 <= n; u += 8) {
+    const __m256 sum =
+        _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w0, _mm256_loadu_ps(a0 + u)),
+                                                  _mm256_mul_ps(w1, _mm256_loadu_ps(a1 + u))),
+                                    _mm256_mul_ps(w2, _mm256_loadu_ps(a2 + u))),
+                      _mm256_mul_ps(w3, _mm256_loadu_ps(a3 + u)));
+    _mm256_storeu_ps(out + u, sum);
+  }
+  return u;
+}
+
+// Four floats from lo in the low half, four from hi in the high half.
+__attribute__((target("avx2"))) inline __m256 Load2(const float* lo, const float* hi) {
+  return _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(lo)), _mm_loadu_ps(hi), 1);
+}
+
+// One row of the affine bicubic warp, 8 pixels at a time: the SSE2 loop of WarpPatch with
+// lanes k and k + 4 in the two halves of each register (the 4 x 4 transposes stay within
+// halves); returns how many pixels were done.
+__attribute__((target("avx2"))) int WarpAffineRowAvx2(const cv::Mat& base, double row_x,
+                                                      double row_y, double m00, double m10,
+                                                      int size, float* dst) {
+  const size_t step = base.step1();
+  int u = 0;
+  for (; u + 8 <= size; u += 8) {
+    int x0[8], y0[8];
+    __m256 tx, ty, wx[4], wy[4];
+    SplitPositions8(row_x, m00, u, x0, &tx);
+    SplitPositions8(row_y, m10, u, y0, &ty);
+    CubicWeights8(tx, wx);
+    CubicWeights8(ty, wy);
+    const float* p[8];
+    for (int k = 0; k < 8; ++k) p[k] = base.ptr<float>(y0[k] - 1) + x0[k] - 1;
+    __m256 sum = _mm256_setzero_ps();
+    for (int j = 0; j < 4; ++j) {
+      const size_t o = j * step;
+      const __m256 r0 = Load2(p[0] + o, p[4] + o), r1 = Load2(p[1] + o, p[5] + o);
+      const __m256 r2 = Load2(p[2] + o, p[6] + o), r3 = Load2(p[3] + o, p[7] + o);
+      const __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpacklo_ps(r2, r3);
+      const __m256 t2 = _mm256_unpackhi_ps(r0, r1), t3 = _mm256_unpackhi_ps(r2, r3);
+      const __m256 tap0 = _mm256_shuffle_ps(t0, t1, _MM_SHUFFLE(1, 0, 1, 0));
+      const __m256 tap1 = _mm256_shuffle_ps(t0, t1, _MM_SHUFFLE(3, 2, 3, 2));
+      const __m256 tap2 = _mm256_shuffle_ps(t2, t3, _MM_SHUFFLE(1, 0, 1, 0));
+      const __m256 tap3 = _mm256_shuffle_ps(t2, t3, _MM_SHUFFLE(3, 2, 3, 2));
+      const __m256 across = _mm256_add_ps(
+          _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(wx[0], tap0), _mm256_mul_ps(wx[1], tap1)),
+                        _mm256_mul_ps(wx[2], tap2)),
+          _mm256_mul_ps(wx[3], tap3));
+      sum = _mm256_add_ps(sum, _mm256_mul_ps(wy[j], across));
+    }
+    _mm256_storeu_ps(dst + u, sum);
+  }
+  return u;
 }
 #endif
 
@@ -240,6 +343,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
   }
   const int size = 2 * r + 1;
   out->create(size, size, CV_32F);
+#if IRMOSAIC_AVX2_PATHS
+  const bool avx2 = simd::Avx2();
+#endif
   // Own bicubic sampler (Keys, a = -0.5): cv::warpAffine quantises positions to 1/32 px, and
   // bilinear interpolation biases sub-pixel positions by a few hundredths of a pixel.
   // With SSE2, 4 output pixels go through the vector lanes at once; every lane performs the
@@ -256,6 +362,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       const float* p = base.ptr<float>(y0 - 1 + j) + x0 - 1;
       float* h = rows_.ptr<float>(j);
       int u = 0;
+#if IRMOSAIC_AVX2_PATHS
+      if (avx2) u = Weighted4Avx2(p, p + 1, p + 2, p + 3, wx, size, h);
+#endif
 #if defined(__SSE2__)
       const __m128 w0 = _mm_set1_ps(wx[0]), w1 = _mm_set1_ps(wx[1]), w2 = _mm_set1_ps(wx[2]),
                    w3 = _mm_set1_ps(wx[3]);
@@ -279,6 +388,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       const float* h3 = rows_.ptr<float>(v + 3);
       float* dst = out->ptr<float>(v);
       int u = 0;
+#if IRMOSAIC_AVX2_PATHS
+      if (avx2) u = Weighted4Avx2(h0, h1, h2, h3, wy, size, dst);
+#endif
 #if defined(__SSE2__)
       const __m128 w0 = _mm_set1_ps(wy[0]), w1 = _mm_set1_ps(wy[1]), w2 = _mm_set1_ps(wy[2]),
                    w3 = _mm_set1_ps(wy[3]);
@@ -302,6 +414,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
     const double row_x = c.x() + m(0, 0) * (-r) + m(0, 1) * (v - r);
     const double row_y = c.y() + m(1, 0) * (-r) + m(1, 1) * (v - r);
     int u = 0;
+#if IRMOSAIC_AVX2_PATHS
+    if (avx2) u = WarpAffineRowAvx2(base, row_x, row_y, m(0, 0), m(1, 0), size, dst);
+#endif
 #if defined(__SSE2__)
     for (; u + 4 <= size; u += 4) {
       int x0[4], y0[4];

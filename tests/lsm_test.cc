@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "../src/simd_dispatch.h"
 #include "irmosaic/error.h"
 #include "test_data.h"
 
@@ -184,6 +185,58 @@ TEST(LsmOnAnalyticTexture, BothMethodsRecoverAKnownAffineAndAgree) {
   EXPECT_LT(worst_trad, 0.02);
   EXPECT_LT(worst_gap, 0.05);  // Issue 5: FLSM and TLSM agree within 0.05 px on clean pairs.
   EXPECT_LT(worst_affine, 0.005);
+}
+
+// The bicubic warp's AVX2 path (8 pixels at a time, chosen at run time) must give the very
+// numbers of the baseline SSE2 and scalar paths: FLSM and TLSM on noisy affine patches, at the
+// full-resolution and the half-resolution patch sizes (45 and 23 px: rows end in 8-, 4- and
+// 1-pixel groups), compared bit for bit.
+TEST(LsmVectorPaths, Avx2AndBaselineWarpsGiveIdenticalMatches) {
+  if (!simd::Avx2()) GTEST_SKIP() << "this CPU has no AVX2: only the baseline path runs";
+  const BlobTexture texture(300, 23);
+  const cv::Mat base_clean = texture.Render(300, {0, 0}, {0, 0}, Eigen::Matrix2d::Identity(), 1.0);
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> frac(-0.5, 0.5);
+  LsmOptions half;
+  half.scales_px = {3.5, 4.5, 5.5};
+  LsmOptions traditional;
+  traditional.method = LsmMethod::kTraditional;
+  int compared = 0;
+  for (const LsmOptions& options : {LsmOptions{}, half, traditional}) {
+    LsmMatcher matcher(options);
+    for (int i = 0; i < 8; ++i) {
+      const Eigen::Vector2d p(90 + 30 * (i % 4), 100 + 60 * (i / 4));
+      const Eigen::Vector2d c = p + Eigen::Vector2d(2.0 + frac(rng), -1.0 + frac(rng));
+      const double angle = 0.02 * frac(rng), scale = 1.0 + 0.03 * frac(rng);
+      Eigen::Matrix2d a;
+      a << scale * std::cos(angle), -scale * std::sin(angle), scale * std::sin(angle),
+          scale * std::cos(angle);
+      cv::Mat templ = texture.Render(300, p, c, a, 1.1);
+      cv::Mat base = base_clean.clone();
+      AddNoise(&templ, 3.0, &rng);
+      AddNoise(&base, 3.0, &rng);
+      const Eigen::Vector2d start = p + Eigen::Vector2d(2.0, -1.0);
+      simd::SetAvx2Allowed(false);
+      const LsmResult baseline = matcher.Match(base, templ, p, start);
+      simd::SetAvx2Allowed(true);
+      const LsmResult avx2 = matcher.Match(base, templ, p, start);
+      SCOPED_TRACE(::testing::Message()
+                   << "patch " << i << ", scale " << options.scales_px[0]
+                   << (options.method == LsmMethod::kFast ? " FLSM" : " TLSM"));
+      ASSERT_EQ(baseline.status, avx2.status) << avx2.reason;
+      ASSERT_TRUE(avx2.ok()) << avx2.reason;
+      EXPECT_EQ(baseline.iterations, avx2.iterations);
+      EXPECT_EQ(baseline.position_in_base.x(), avx2.position_in_base.x());
+      EXPECT_EQ(baseline.position_in_base.y(), avx2.position_in_base.y());
+      EXPECT_EQ(baseline.base_from_template_linear, avx2.base_from_template_linear);
+      EXPECT_EQ(baseline.gain, avx2.gain);
+      // And it is the right match (a wrong basin is pixels off; the 23-px patches on noisy
+      // blobs hold 0.1-0.3 px).
+      EXPECT_LT((avx2.position_in_base - c).norm(), 0.5);
+      ++compared;
+    }
+  }
+  EXPECT_EQ(compared, 24);
 }
 
 TEST_F(LsmOnRealImage, FastIsAtLeastAsAccurateAsTraditionalUnderNoise) {
