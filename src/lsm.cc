@@ -160,15 +160,17 @@ __attribute__((target("avx2"))) inline void SplitPositions8(double start, double
   _mm_storeu_si128(reinterpret_cast<__m128i*>(whole + 4), whole_hi);
 }
 
-// out[u] = ((w0 a0[u] + w1 a1[u]) + w2 a2[u]) + w3 a3[u] for u below n rounded down to 8, as
-// the separable warp's SSE2 and scalar loops compute it; returns how many were done.
+// out[u] = ((w0 a0[u] + w1 a1[u]) + w2 a2[u]) + w3 a3[u] for u < n, as the separable warp's
+// SSE2 and scalar loops compute it; returns how many were done (n, or 0 when n < 8).
 __attribute__((target("avx2"))) int Weighted4Avx2(const float* a0, const float* a1, const float* a2,
                                                   const float* a3, const float* w, int n,
                                                   float* out) {
   const __m256 w0 = _mm256_set1_ps(w[0]), w1 = _mm256_set1_ps(w[1]), w2 = _mm256_set1_ps(w[2]),
                w3 = _mm256_set1_ps(w[3]);
-  int u = 0;
-  for (; u + 8 <= n; u += 8) {
+  if (n < 8) return 0;
+  for (int start = 0; start < n; start += 8) {
+    // The last group ends at n, overlapping the one before: its pixels come out the same.
+    const int u = std::min(start, n - 8);
     const __m256 sum =
         _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w0, _mm256_loadu_ps(a0 + u)),
                                                   _mm256_mul_ps(w1, _mm256_loadu_ps(a1 + u))),
@@ -176,7 +178,7 @@ __attribute__((target("avx2"))) int Weighted4Avx2(const float* a0, const float* 
                       _mm256_mul_ps(w3, _mm256_loadu_ps(a3 + u)));
     _mm256_storeu_ps(out + u, sum);
   }
-  return u;
+  return n;
 }
 
 // Four floats from lo in the low half, four from hi in the high half.
@@ -186,13 +188,15 @@ __attribute__((target("avx2"))) inline __m256 Load2(const float* lo, const float
 
 // One row of the affine bicubic warp, 8 pixels at a time: the SSE2 loop of WarpPatch with
 // lanes k and k + 4 in the two halves of each register (the 4 x 4 transposes stay within
-// halves); returns how many pixels were done.
+// halves); returns how many pixels were done (size, or 0 when size < 8).
 __attribute__((target("avx2"))) int WarpAffineRowAvx2(const cv::Mat& base, double row_x,
                                                       double row_y, double m00, double m10,
                                                       int size, float* dst) {
   const size_t step = base.step1();
-  int u = 0;
-  for (; u + 8 <= size; u += 8) {
+  if (size < 8) return 0;
+  for (int start = 0; start < size; start += 8) {
+    // The last group ends at size, overlapping the one before: its pixels come out the same.
+    const int u = std::min(start, size - 8);
     int x0[8], y0[8];
     __m256 tx, ty, wx[4], wy[4];
     SplitPositions8(row_x, m00, u, x0, &tx);
@@ -220,7 +224,7 @@ __attribute__((target("avx2"))) int WarpAffineRowAvx2(const cv::Mat& base, doubl
     }
     _mm256_storeu_ps(dst + u, sum);
   }
-  return u;
+  return size;
 }
 #endif
 
@@ -368,7 +372,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
 #if defined(__SSE2__)
       const __m128 w0 = _mm_set1_ps(wx[0]), w1 = _mm_set1_ps(wx[1]), w2 = _mm_set1_ps(wx[2]),
                    w3 = _mm_set1_ps(wx[3]);
-      for (; u + 4 <= size; u += 4) {
+      // The last group ends at size, overlapping the one before (its pixels come out the same).
+      for (int next = u; size >= 4 && next < size; next += 4) {
+        u = std::min(next, size - 4);
         const __m128 sum =
             _mm_add_ps(_mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(p + u)),
                                              _mm_mul_ps(w1, _mm_loadu_ps(p + u + 1))),
@@ -376,6 +382,7 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
                        _mm_mul_ps(w3, _mm_loadu_ps(p + u + 3)));
         _mm_storeu_ps(h + u, sum);
       }
+      if (size >= 4) u = size;
 #endif
       for (; u < size; ++u) {
         h[u] = wx[0] * p[u] + wx[1] * p[u + 1] + wx[2] * p[u + 2] + wx[3] * p[u + 3];
@@ -394,13 +401,16 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
 #if defined(__SSE2__)
       const __m128 w0 = _mm_set1_ps(wy[0]), w1 = _mm_set1_ps(wy[1]), w2 = _mm_set1_ps(wy[2]),
                    w3 = _mm_set1_ps(wy[3]);
-      for (; u + 4 <= size; u += 4) {
+      // The last group ends at size, overlapping the one before (its pixels come out the same).
+      for (int next = u; size >= 4 && next < size; next += 4) {
+        u = std::min(next, size - 4);
         const __m128 sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(_mm_mul_ps(w0, _mm_loadu_ps(h0 + u)),
                                                             _mm_mul_ps(w1, _mm_loadu_ps(h1 + u))),
                                                  _mm_mul_ps(w2, _mm_loadu_ps(h2 + u))),
                                       _mm_mul_ps(w3, _mm_loadu_ps(h3 + u)));
         _mm_storeu_ps(dst + u, sum);
       }
+      if (size >= 4) u = size;
 #endif
       for (; u < size; ++u) {
         dst[u] = wy[0] * h0[u] + wy[1] * h1[u] + wy[2] * h2[u] + wy[3] * h3[u];
@@ -418,7 +428,9 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
     if (avx2) u = WarpAffineRowAvx2(base, row_x, row_y, m(0, 0), m(1, 0), size, dst);
 #endif
 #if defined(__SSE2__)
-    for (; u + 4 <= size; u += 4) {
+    // The last group ends at size, overlapping the one before (its pixels come out the same).
+    for (int next = u; size >= 4 && next < size; next += 4) {
+      u = std::min(next, size - 4);
       int x0[4], y0[4];
       __m128 tx, ty, wx[4], wy[4];
       SplitPositions4(row_x, m(0, 0), u, x0, &tx);
@@ -442,6 +454,7 @@ bool LsmMatcher::WarpPatch(const cv::Mat& base, const Eigen::Vector2d& c, const 
       }
       _mm_storeu_ps(dst + u, sum);
     }
+    if (size >= 4) u = size;
 #endif
     for (; u < size; ++u) {
       const double x = row_x + m(0, 0) * u, y = row_y + m(1, 0) * u;
