@@ -636,7 +636,7 @@ void SumRows(const cv::Mat& image, int y, int f, int w, uint32_t* acc) {
       if constexpr (std::is_same_v<T, uint16_t>) {
         v = cv::v_load_expand(in + x);
       } else {
-        v = cv::v_load_expand_q(in + x);
+        v = LoadExpand4(in + x);
       }
       cv::v_store(acc + x, k == 0 ? v : cv::v_load(acc + x) + v);
     }
