@@ -232,15 +232,6 @@ Eigen::Vector2d ImageFromOrtho(const OrthoImage& ortho, const Eigen::Vector2d& p
   return ApplyHomography(ortho.ortho_from_image.inverse(), p);
 }
 
-// The POS orthoimages the pairs register: the footprint only (plus 2 px), the rest of the box
-// 0. Registration reads them under their masks (SCD fills no-data with the valid mean, the
-// FLSM's key points and patches keep clear of the mask's edge).
-OrthoOptions RegistrationOrthoOptions() {
-  OrthoOptions options;
-  options.footprint_only = true;
-  return options;
-}
-
 }  // namespace
 
 std::array<double, 6> WindowGeoTransform(double gsd_m, cv::Point top_left_px) {
@@ -304,7 +295,7 @@ class Mosaicker::Impl : public MosaicSink {
         camera_(std::move(camera)),
         pos_(std::move(pos)),
         ground_(options_.ground_height_m),
-        ortho_(camera_, RegistrationOrthoOptions()) {
+        ortho_(camera_) {
     std::string error;
     if (!options_.IsValid(&error)) {
       throw InputError({"options", 0, 0, ""}, error, "correct the option");
