@@ -230,9 +230,10 @@ struct PairRegistrationOptions {
 // The configuration the Mosaicker registers neighbouring frames with (docs/matching.md,
 // "In the pipeline"): the defaults above, with the dense overlap fit off, a joint-fit accept
 // bound of 1 px (the optimizer weighs each pair by its accuracy), single-patch LSM
-// convergence at 0.01 px (the joint fit, not the single patches, sets a noisy pair's
+// convergence at 0.02 px (the joint fit, not the single patches, sets a noisy pair's
 // homography), the coarse SCD peak without its full-resolution refinement (the LSM
-// refines the translation) and the FLSM on half-resolution copies (fine.lsm_level 1).
+// refines the translation), and the FLSM and the key points on half-resolution copies
+// (fine.lsm_level 1, fine.keypoints_at_lsm_level).
 IRMOSAIC_EXPORT PairRegistrationOptions PipelineRegistrationOptions();
 
 // SCD coarse translation, then fine registration: the pair registered end to end.
