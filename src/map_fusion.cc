@@ -228,9 +228,9 @@ class MapFusion::Impl {
       double gain_base = 1.0, offset_base = 0.0;
       {
         std::lock_guard<std::mutex> lock(mu_);
-        h_base = placements_[neighbour->slot].mosaic_from_image;
-        gain_base = placements_[neighbour->slot].gain;
-        offset_base = placements_[neighbour->slot].offset;
+        h_base = PlacementAt(neighbour->slot).mosaic_from_image;
+        gain_base = PlacementAt(neighbour->slot).gain;
+        offset_base = PlacementAt(neighbour->slot).offset;
       }
       for (size_t t = 0; t < pair.base_points.size(); ++t) {
         template_pts.push_back(pair.template_points[t]);
@@ -275,7 +275,7 @@ class MapFusion::Impl {
 
     {
       std::lock_guard<std::mutex> lock(mu_);
-      frame->slot = placements_.size();
+      frame->slot = base_slot_ + placements_.size();
       frame->rendered = placement;
       placements_.push_back(placement);
       window_.push_back(frame);
@@ -293,7 +293,7 @@ class MapFusion::Impl {
       const size_t keep = 2 * static_cast<size_t>(options_.window_frames);
       const size_t hard = kMaxHeldWindows * static_cast<size_t>(options_.window_frames);
       while (window_.size() > keep) {
-        FramePlacement& oldest_placement = placements_[window_.front()->slot];
+        FramePlacement& oldest_placement = PlacementAt(window_.front()->slot);
         const bool unrefined = options_.optimize && oldest_placement.optimized_times == 0;
         if (unrefined && window_.size() <= hard) break;
         if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
@@ -324,6 +324,22 @@ class MapFusion::Impl {
     return {placements_.begin(), placements_.end()};
   }
 
+  size_t ReleasePlacements(size_t before_slot) {
+    std::lock_guard<std::mutex> lock(mu_);
+    // Never a placement something may still read or change: the window's, the bases of its
+    // pairs, a running solve's snapshot and a replay's.
+    size_t limit = std::min(before_slot, base_slot_ + placements_.size());
+    if (!window_.empty()) limit = std::min(limit, window_.front()->slot);
+    for (const Pair& p : pairs_) limit = std::min(limit, p.base->slot);
+    if (solving_) limit = std::min(limit, solving_min_slot_);
+    if (replaying_) limit = std::min(limit, resume_.frozen_slots);
+    while (base_slot_ < limit) {
+      placements_.pop_front();
+      ++base_slot_;
+    }
+    return base_slot_;
+  }
+
   FusionResumeState ResumeState(size_t from_slot) const {
     std::lock_guard<std::mutex> lock(mu_);
     FusionResumeState state;
@@ -336,15 +352,18 @@ class MapFusion::Impl {
         state.pairs.push_back({p.base->data.index, p.templ->data.index, *p.weight});
       }
       state.frames_since_solve = frames_since_solve_;
-      state.solving_through = solving_ ? placements_[solving_last_slot_].index : -1;
+      state.solving_through = solving_ ? PlacementAt(solving_last_slot_).index : -1;
       // Frames that left the window never move again, unless a running solve still holds them
       // (the foreground got more than a window ahead of it).
-      state.frozen_slots = window_.empty() ? placements_.size() : window_.front()->slot;
+      state.frozen_slots =
+          window_.empty() ? base_slot_ + placements_.size() : window_.front()->slot;
       if (solving_) state.frozen_slots = std::min(state.frozen_slots, solving_first_slot_);
     }
-    state.first_slot = std::min(from_slot, placements_.size());
-    state.placements.assign(placements_.begin() + static_cast<std::ptrdiff_t>(state.first_slot),
-                            placements_.end());
+    state.first_slot = std::clamp(from_slot, base_slot_, base_slot_ + placements_.size());
+    state.placements.assign(
+        placements_.begin() + static_cast<std::ptrdiff_t>(state.first_slot - base_slot_),
+        placements_.end());
+    state.released_registered = state.released_pos_only = 0;
     return state;
   }
 
@@ -353,30 +372,32 @@ class MapFusion::Impl {
     if (!placements_.empty() || replaying_) {
       throw std::invalid_argument("MapFusion::Resume: call it before the first Push");
     }
-    if (state.first_slot != 0) {
-      throw std::invalid_argument("MapFusion::Resume: the state must hold every placement");
-    }
     const int64_t replay_from = state.ReplayFrom();
+    if (state.first_slot != 0 && !state.placements.empty() && replay_from >= 0 &&
+        state.placements.front().index > replay_from) {
+      throw std::invalid_argument("MapFusion::Resume: the state must hold the placements from " +
+                                  std::to_string(replay_from) + " (the replay's first frame) on");
+    }
     std::set<int64_t> seen;
-    for (size_t slot = 0; slot < state.placements.size(); ++slot) {
-      FramePlacement& p = state.placements[slot];
+    for (size_t k = 0; k < state.placements.size(); ++k) {
+      const size_t slot = state.first_slot + k;
+      FramePlacement& p = state.placements[k];
       if (!seen.insert(p.index).second) {
         throw std::invalid_argument("MapFusion::Resume: frame " + std::to_string(p.index) +
                                     " is recorded twice");
       }
-      if (replay_from >= 0 && p.index >= replay_from) {
-        replay_slots_[p.index] = slot;
-      } else {
-        p.pos_mosaic_from_image = p.mosaic_from_image;  // Frozen; its POS placement unknown.
-      }
+      if (replay_from >= 0 && p.index >= replay_from) replay_slots_[p.index] = slot;
       replay_last_ = std::max(replay_last_, p.index);
       ++(p.pos_only ? frames_pos_only_ : frames_registered_);
     }
+    frames_registered_ += state.released_registered;
+    frames_pos_only_ += state.released_pos_only;
+    base_slot_ = state.first_slot;
     for (const FusionResumeState::Pair& p : state.pairs) replay_pairs_.emplace(p.templ, p);
     placements_.assign(std::make_move_iterator(state.placements.begin()),
                        std::make_move_iterator(state.placements.end()));
     state.placements.clear();
-    state.frozen_slots = placements_.size();
+    state.frozen_slots = base_slot_ + placements_.size();
     for (const auto& [index, slot] : replay_slots_) {
       state.frozen_slots = std::min(state.frozen_slots, slot);
     }
@@ -387,7 +408,8 @@ class MapFusion::Impl {
   FusionStats stats() const {
     std::lock_guard<std::mutex> lock(mu_);
     FusionStats s = stats_;
-    s.frames = static_cast<int64_t>(placements_.size());
+    s.frames = static_cast<int64_t>(base_slot_ + placements_.size());
+    s.placements_held = static_cast<int64_t>(placements_.size());
     s.frames_registered = frames_registered_;
     s.frames_pos_only = frames_pos_only_;
     s.pairs_tried = pairs_tried_;
@@ -449,7 +471,7 @@ class MapFusion::Impl {
     for (size_t k = 0; k + count < window_.size(); ++k) {
       Held& f = *window_[k];
       if (f.data.image.empty() && !f.spilled) continue;
-      if (options_.optimize && placements_[f.slot].optimized_times == 0) continue;
+      if (options_.optimize && PlacementAt(f.slot).optimized_times == 0) continue;
       f.data.image.release();
       f.spilled.reset();
     }
@@ -547,7 +569,7 @@ class MapFusion::Impl {
     }
     replay_held_[index] = frame;
     std::lock_guard<std::mutex> lock(mu_);
-    FramePlacement& placement = placements_[frame->slot];
+    FramePlacement& placement = PlacementAt(frame->slot);
     placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
     placement.note += note;
     frame->rendered = placement;
@@ -830,7 +852,7 @@ class MapFusion::Impl {
       // running ahead never freezes unrefined frames.
       span = SolveSpan(window_[end - 1]->slot, final_solve);
       size_t first = end > span ? end - span : 0;
-      while (first > 0 && placements_[window_[first - 1]->slot].optimized_times == 0 &&
+      while (first > 0 && PlacementAt(window_[first - 1]->slot).optimized_times == 0 &&
              end - first < kMaxHeldWindows * static_cast<size_t>(options_.window_frames)) {
         --first;
       }
@@ -844,12 +866,14 @@ class MapFusion::Impl {
       solving_ = true;  // Until it publishes: a resume record taken meanwhile runs it again.
       solving_first_slot_ = frames.front()->slot;
       solving_last_slot_ = frames.back()->slot;
+      solving_min_slot_ = solving_first_slot_;
+      for (const Pair& p : pairs) solving_min_slot_ = std::min(solving_min_slot_, p.base->slot);
       for (const Pair& p : pairs) {
-        current[p.base->slot] = placements_[p.base->slot];
-        current[p.templ->slot] = placements_[p.templ->slot];
+        current[p.base->slot] = PlacementAt(p.base->slot);
+        current[p.templ->slot] = PlacementAt(p.templ->slot);
       }
       for (const auto& f : frames) {
-        current[f->slot] = placements_[f->slot];
+        current[f->slot] = PlacementAt(f->slot);
         prior_info[f->slot] = f->prior_sqrt_information;
         images[f->slot] = {f->data.image, f->spilled};
       }
@@ -1007,7 +1031,7 @@ class MapFusion::Impl {
       for (size_t k = 0; k < pairs.size(); ++k) *pairs[k].weight = pair_weight[k];
       solving_ = false;
       for (const auto& f : frames) {
-        FramePlacement& live = placements_[f->slot];
+        FramePlacement& live = PlacementAt(f->slot);
         // Frames placed while we solved were chained from the old placement of their
         // neighbour; carry the correction of the frame itself when it was in the snapshot.
         live.mosaic_from_image = solved[f->slot];
@@ -1082,15 +1106,15 @@ class MapFusion::Impl {
         double painted_sum_sq = 0.0;
         for (const auto& f : frames) {
           const double lag = CornerShift(f->rendered.mosaic_from_image,
-                                         placements_[f->slot].mosaic_from_image, camera_);
+                                         PlacementAt(f->slot).mosaic_from_image, camera_);
           painted_sum_sq += lag * lag;
         }
         double seam_after_sq = 0.0;
         int seam_count = 0;
         for (size_t k = 0; k < pairs.size(); ++k) {
           if (pairs[k].base_points.empty()) continue;
-          const double lag = seam_lag_of(k, placements_[pairs[k].base->slot].mosaic_from_image,
-                                         placements_[pairs[k].templ->slot].mosaic_from_image);
+          const double lag = seam_lag_of(k, PlacementAt(pairs[k].base->slot).mosaic_from_image,
+                                         PlacementAt(pairs[k].templ->slot).mosaic_from_image);
           seam_after_sq += lag * lag;
           ++seam_count;
         }
@@ -1245,9 +1269,13 @@ class MapFusion::Impl {
   std::unique_ptr<HelperThreads> registration_helpers_;
   std::deque<std::shared_ptr<Held>> window_;
   std::deque<Pair> pairs_;
-  // Every frame's placement, by slot: a deque, so an hour's ~90,000 grow in blocks instead of
-  // a vector's doubling (at 65,536 frames a 17 MB array copied into a new 35 MB one).
+  // Every frame's placement from slot base_slot_ on (ReleasePlacements drops older ones whose
+  // caller keeps them elsewhere): a deque, so an hour's ~90,000 grow in blocks instead of a
+  // vector's doubling, and a front that goes costs nothing.
   std::deque<FramePlacement> placements_;
+  size_t base_slot_ = 0;
+  FramePlacement& PlacementAt(size_t slot) { return placements_[slot - base_slot_]; }
+  const FramePlacement& PlacementAt(size_t slot) const { return placements_[slot - base_slot_]; }
   int64_t frames_since_solve_ = 0;
   int64_t frames_registered_ = 0, frames_pos_only_ = 0;
   // Counted by the producer outside mu_ (registration runs unlocked), read by stats() anywhere.
@@ -1256,6 +1284,7 @@ class MapFusion::Impl {
   // A solve between its snapshot and its publish, and the push-order span of its frames.
   bool solving_ = false;
   size_t solving_first_slot_ = 0, solving_last_slot_ = 0;
+  size_t solving_min_slot_ = 0;  // Oldest slot its snapshot holds (a pair's base may be older).
 
   // Resumed runs (Resume): the record, without its placements (they are placements_), and
   // while its frames are pushed again, what the replay needs (producer thread only, except
@@ -1287,6 +1316,9 @@ MapFusion::~MapFusion() = default;
 FramePlacement MapFusion::Push(FusionFrame frame) { return impl_->Push(std::move(frame)); }
 void MapFusion::Finish() { impl_->Finish(); }
 std::vector<FramePlacement> MapFusion::Placements() const { return impl_->Placements(); }
+size_t MapFusion::ReleasePlacements(size_t before_slot) {
+  return impl_->ReleasePlacements(before_slot);
+}
 FusionResumeState MapFusion::ResumeState(size_t from_slot) const {
   return impl_->ResumeState(from_slot);
 }

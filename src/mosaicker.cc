@@ -56,20 +56,27 @@ constexpr const char* kFrozenRecordFile = "resume_frames.jsonl";
 
 // One frame of the resume record. Numbers are written so that they read back exactly
 // (nlohmann::json writes the shortest text that round-trips a double).
-nlohmann::json PlacementRecord(const FramePlacement& p) {
-  std::vector<double> h(9);
+std::vector<double> RowMajor(const Eigen::Matrix3d& m) {
+  std::vector<double> terms(9);
   for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) h[3 * r + c] = p.mosaic_from_image(r, c);
-  return {{"index", p.index},
-          {"time_s", p.time_s},
-          {"h", h},
-          {"pos_only", p.pos_only},
-          {"inliers", p.inliers},
-          {"residual_px", p.residual_px},
-          {"gain", p.gain},
-          {"offset", p.offset},
-          {"optimized", p.optimized_times},
-          {"neighbours", p.neighbours}};
+    for (int c = 0; c < 3; ++c) terms[3 * r + c] = m(r, c);
+  return terms;
+}
+
+nlohmann::json PlacementRecord(const FramePlacement& p) {
+  nlohmann::json record = {{"index", p.index},
+                           {"time_s", p.time_s},
+                           {"h", RowMajor(p.mosaic_from_image)},
+                           {"pos_h", RowMajor(p.pos_mosaic_from_image)},
+                           {"pos_only", p.pos_only},
+                           {"inliers", p.inliers},
+                           {"residual_px", p.residual_px},
+                           {"gain", p.gain},
+                           {"offset", p.offset},
+                           {"optimized", p.optimized_times},
+                           {"neighbours", p.neighbours}};
+  if (!p.note.empty()) record["note"] = p.note;
+  return record;
 }
 
 // A damaged resume record is refused, never used: frames must not be placed at NaN.
@@ -96,6 +103,24 @@ double RecordFinite(const nlohmann::json& j, const char* key, SourceLocation whe
   return j[key].get<double>();
 }
 
+// The 3 x 3 matrix stored under `key` (9 finite numbers, row by row) of a frame's record.
+Eigen::Matrix3d RecordMatrix(const nlohmann::json& f, const char* key, SourceLocation at,
+                             const std::string& what) {
+  at.field += key;
+  if (!f.contains(key) || !f[key].is_array() || f[key].size() != 9) {
+    RefuseRecord(at, what + " is not 9 numbers");
+  }
+  Eigen::Matrix3d m;
+  for (int i = 0; i < 9; ++i) {
+    const nlohmann::json& v = f[key][static_cast<size_t>(i)];
+    if (!v.is_number() || !std::isfinite(v.get<double>())) {
+      RefuseRecord(at, what + " is not finite");
+    }
+    m(i / 3, i % 3) = v.get<double>();
+  }
+  return m;
+}
+
 // One frame of the record; `where` names its place (manifest field or log line).
 FramePlacement ParsePlacementRecord(const nlohmann::json& f, const SourceLocation& where) {
   if (!f.is_object()) RefuseRecord(where, "a frame of the resume record is not a JSON object");
@@ -105,20 +130,19 @@ FramePlacement ParsePlacementRecord(const nlohmann::json& f, const SourceLocatio
   SourceLocation at = where;
   at.field += "h";
   p.time_s = RecordFinite(f, "time_s", where, frame + "time");
-  if (!f.contains("h") || !f["h"].is_array() || f["h"].size() != 9) {
-    RefuseRecord(at, frame + "stored placement is not 9 numbers");
-  }
-  for (int i = 0; i < 9; ++i) {
-    const nlohmann::json& v = f["h"][static_cast<size_t>(i)];
-    if (!v.is_number() || !std::isfinite(v.get<double>())) {
-      RefuseRecord(at, frame + "stored placement is not finite");
-    }
-    p.mosaic_from_image(i / 3, i % 3) = v.get<double>();
-  }
+  p.mosaic_from_image = RecordMatrix(f, "h", where, frame + "stored placement");
   if (std::abs(p.mosaic_from_image.determinant()) < 1e-12) {
     RefuseRecord(at, frame + "stored placement is singular");
   }
-  p.pos_mosaic_from_image = p.mosaic_from_image;
+  // The POS placement (recorded since 2026-12-05; before, the placement stands for it).
+  p.pos_mosaic_from_image = f.contains("pos_h")
+                                ? RecordMatrix(f, "pos_h", where, frame + "POS placement")
+                                : p.mosaic_from_image;
+  if (f.contains("note")) {
+    at.field = where.field + "note";
+    if (!f["note"].is_string()) RefuseRecord(at, frame + "note is not text");
+    p.note = f["note"].get<std::string>();
+  }
   at.field = where.field + "pos_only";
   if (!f.contains("pos_only") || !f["pos_only"].is_boolean()) {
     RefuseRecord(at, frame + "pos_only is missing or not true/false");
@@ -138,6 +162,30 @@ FramePlacement ParsePlacementRecord(const nlohmann::json& f, const SourceLocatio
     }
   }
   return p;
+}
+
+// The first `max_frames` placements of the frozen frames' file, of its first `bytes` bytes
+// (what a manifest counts).
+std::vector<FramePlacement> ReadFrozenRecord(const std::string& log, uintmax_t bytes,
+                                             size_t max_frames) {
+  std::vector<FramePlacement> placements;
+  std::string text(static_cast<size_t>(bytes), '\0');
+  if (bytes > 0) {
+    std::ifstream in(log, std::ios::binary);
+    in.read(text.data(), static_cast<std::streamsize>(bytes));
+    if (!in) RefuseRecord({log, 0, 0, ""}, "cannot be read");
+  }
+  size_t start = 0;
+  for (int line = 1; start < text.size() && placements.size() < max_frames; ++line) {
+    const size_t end = text.find('\n', start);
+    if (end == std::string::npos) RefuseRecord({log, line, 0, ""}, "the line is cut short");
+    const nlohmann::json f =
+        nlohmann::json::parse(text.begin() + static_cast<std::ptrdiff_t>(start),
+                              text.begin() + static_cast<std::ptrdiff_t>(end), nullptr, false);
+    placements.push_back(ParsePlacementRecord(f, {log, line, 0, ""}));
+    start = end + 1;
+  }
+  return placements;
 }
 
 // The resume record as read back, and how much of the frozen frames' file it covers.
@@ -178,22 +226,7 @@ ResumeRecord ParseResumeRecord(const nlohmann::json& doc, const std::filesystem:
                        " but the manifest's resume record counts " + std::to_string(bytes) +
                        " bytes of " + std::to_string(frames) + " frames");
     }
-    std::string text(static_cast<size_t>(bytes), '\0');
-    if (bytes > 0) {
-      std::ifstream in(log, std::ios::binary);
-      in.read(text.data(), bytes);
-      if (!in) RefuseRecord({log, 0, 0, ""}, "cannot be read");
-    }
-    size_t start = 0;
-    for (int line = 1; start < text.size(); ++line) {
-      const size_t end = text.find('\n', start);
-      if (end == std::string::npos) RefuseRecord({log, line, 0, ""}, "the line is cut short");
-      const nlohmann::json f =
-          nlohmann::json::parse(text.begin() + static_cast<std::ptrdiff_t>(start),
-                                text.begin() + static_cast<std::ptrdiff_t>(end), nullptr, false);
-      state.placements.push_back(ParsePlacementRecord(f, {log, line, 0, ""}));
-      start = end + 1;
-    }
+    state.placements = ReadFrozenRecord(log, static_cast<uintmax_t>(bytes), SIZE_MAX);
     if (state.placements.size() != static_cast<size_t>(frames)) {
       RefuseRecord({log, 0, 0, ""}, "holds " + std::to_string(state.placements.size()) +
                                         " frames in its first " + std::to_string(bytes) +
@@ -574,17 +607,27 @@ class Mosaicker::Impl : public MosaicSink {
     return s;
   }
 
-  std::vector<FramePlacement> Placements() const { return fusion_->Placements(); }
+  // The released frames' placements from the frozen frames' file, then the fusion's.
+  std::vector<FramePlacement> Placements() const {
+    std::lock_guard<std::mutex> lock(frozen_mu_);
+    std::vector<FramePlacement> placements;
+    if (released_slots_ > 0) {
+      placements = ReadFrozenRecord(
+          (std::filesystem::path(options_.store_path) / kFrozenRecordFile).string(),
+          frozen_record_bytes_, released_slots_);
+    }
+    std::vector<FramePlacement> held = fusion_->Placements();
+    placements.insert(placements.end(), std::make_move_iterator(held.begin()),
+                      std::make_move_iterator(held.end()));
+    return placements;
+  }
 
   void WritePlacements(const std::string& path) const {
     nlohmann::json frames = nlohmann::json::array();
-    for (const FramePlacement& p : fusion_->Placements()) {
-      std::vector<double> h(9);
-      for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c) h[3 * r + c] = p.mosaic_from_image(r, c);
+    for (const FramePlacement& p : Placements()) {
       frames.push_back({{"index", p.index},
                         {"time_s", p.time_s},
-                        {"mosaic_from_image", h},
+                        {"mosaic_from_image", RowMajor(p.mosaic_from_image)},
                         {"pos_only", p.pos_only},
                         {"inliers", p.inliers},
                         {"residual_px", p.residual_px},
@@ -689,7 +732,14 @@ class Mosaicker::Impl : public MosaicSink {
       }
     }
     if (newly_frozen > 0 && AppendFrozenRecord(frozen)) {
+      // On disk now: the fusion and the frame clips need not keep them any more.
+      std::lock_guard<std::mutex> lock(frozen_mu_);
       frozen_record_frames_ += newly_frozen;
+      if (!options_.keep_placements_in_memory) {
+        released_slots_ = fusion_->ReleasePlacements(frozen_record_frames_);
+      }
+      std::lock_guard<std::mutex> clips_lock(mu_);
+      for (size_t k = 0; k < newly_frozen; ++k) clips_.erase(state.placements[k].index);
     } else if (newly_frozen > 0) {
       // Not written (full disk): the manifest carries them this time, the next publish retries.
       std::replace(frozen.begin(), frozen.end(), '\n', ',');
@@ -718,6 +768,7 @@ class Mosaicker::Impl : public MosaicSink {
   bool AppendFrozenRecord(const std::string& lines) {
     const std::filesystem::path path =
         std::filesystem::path(options_.store_path) / kFrozenRecordFile;
+    std::lock_guard<std::mutex> lock(frozen_mu_);
     if (!frozen_record_.is_open()) frozen_record_.open(path, std::ios::binary | std::ios::app);
     frozen_record_ << lines;
     frozen_record_.flush();
@@ -836,6 +887,21 @@ class Mosaicker::Impl : public MosaicSink {
         ++summary_.frames_placed;
         ++(p.pos_only ? summary_.frames_pos_only : summary_.frames_registered);
       }
+    }
+    if (!options_.keep_placements_in_memory) {
+      // The frozen frames stay in their file: the fusion holds the frames from the first one
+      // not frozen, or the replay's first one if older (push order is index order), on.
+      size_t keep = std::min(record.frozen_frames, state.placements.size());
+      const int64_t from = state.ReplayFrom();
+      while (from >= 0 && keep > 0 && state.placements[keep - 1].index >= from) --keep;
+      for (size_t k = 0; k < keep; ++k) {
+        ++(state.placements[k].pos_only ? state.released_pos_only : state.released_registered);
+      }
+      state.placements.erase(state.placements.begin(),
+                             state.placements.begin() + static_cast<std::ptrdiff_t>(keep));
+      state.first_slot = keep;
+      std::lock_guard<std::mutex> lock(frozen_mu_);
+      released_slots_ = keep;
     }
     fusion_->Resume(std::move(state));
     resume_recorded_ = true;
@@ -1032,9 +1098,14 @@ class Mosaicker::Impl : public MosaicSink {
   std::string resume_warning_;
   // The frozen frames' file (kFrozenRecordFile), how many frames (the first ones in push
   // order) and bytes it holds.
+  // The frozen frames' file (resume record) and the placements the fusion released because
+  // they are in it (MosaickerOptions::keep_placements_in_memory): frames [0, released_slots_)
+  // in push order. frozen_mu_ guards the file's size and released_slots_ against Placements().
+  mutable std::mutex frozen_mu_;
   std::ofstream frozen_record_;
   size_t frozen_record_frames_ = 0;
   uintmax_t frozen_record_bytes_ = 0;
+  size_t released_slots_ = 0;
   Clock::time_point last_publish_ = Clock::now();
   mutable std::mutex mu_;
   std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;      // Kept part of clipped frames.

@@ -8,6 +8,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
+#include <bitset>
 #include <cerrno>
 #include <chrono>
 #include <cmath>
@@ -20,6 +22,7 @@
 #include <list>
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
+#include <optional>
 #include <thread>
 #include <unordered_map>
 
@@ -247,6 +250,50 @@ bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
   return painted;
 }
 
+// Each frame index's time, in blocks of 4096 indices (8 bytes a frame, sparse indices cost a
+// block each): what the manifest's frame count and time range need, without the records.
+class FrameTimes {
+ public:
+  // Sets the time of `index`; returns the one it had, if any.
+  std::optional<double> Set(int64_t index, double time_s) {
+    Block& block = blocks_[index / kBlock];
+    const size_t at = static_cast<size_t>(index % kBlock);
+    std::optional<double> old;
+    if (block.present[at]) {
+      old = block.time_s[at];
+    } else {
+      block.present[at] = true;
+      ++count_;
+    }
+    block.time_s[at] = time_s;
+    return old;
+  }
+  int64_t count() const { return count_; }
+  template <class Visit>
+  void ForEach(Visit visit) const {
+    for (const auto& [key, block] : blocks_) {
+      for (size_t at = 0; at < kBlock; ++at) {
+        if (block.present[at]) visit(block.time_s[at]);
+      }
+    }
+  }
+
+ private:
+  static constexpr int64_t kBlock = 4096;
+  struct Block {
+    std::array<double, kBlock> time_s{};
+    std::bitset<kBlock> present;
+  };
+  std::unordered_map<int64_t, Block> blocks_;
+  int64_t count_ = 0;
+};
+
+bool SameRecord(const FrameRecord& a, const FrameRecord& b) {
+  return a.index == b.index && a.time_s == b.time_s && a.footprint_m == b.footprint_m &&
+         a.pos_only == b.pos_only && a.residual_px == b.residual_px && a.inliers == b.inliers &&
+         a.status == b.status;
+}
+
 }  // namespace
 
 struct TileStore::Impl {
@@ -296,8 +343,11 @@ struct TileStore::Impl {
   uint64_t use_clock = 0;
   store::LevelTiles
       level0_on_disk;  // Level-0 tiles whose file exists (written or listed at resume).
+  // Frame records put and not yet in frames.gpkg (or being written to it): a flight's records
+  // live in frames.gpkg, where FrameRecords() reads them, not in memory (an hour: ~90,000).
   std::map<int64_t, FrameRecord> frames;
-  // Time range of `frames`, kept as records come (a publish no longer walks every record of
+  FrameTimes frame_times;  // Every record's time, for the manifest's count and time range.
+  // Time range of the records, kept as records come (a publish no longer walks every record of
   // the flight under the lock: ~90,000 in an hour); stale: recomputed at the next publish.
   std::pair<double, double> frames_time{kNoTime, -kNoTime};
   bool frames_time_stale = true;
@@ -862,14 +912,14 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
   secondary_owed = !secondary;
-  int64_t frame_count = static_cast<int64_t>(frames.size());
+  int64_t frame_count = frame_times.count();
   if (frames_time_stale) {  // Records loaded at open, or one replaced with another time.
     frames_time_stale = false;
     frames_time = {kNoTime, -kNoTime};
-    for (const auto& [index, record] : frames) WidenFramesTime(record.time_s);
+    frame_times.ForEach([this](double time_s) { WidenFramesTime(time_s); });
   }
-  const double time_min = frames.empty() ? 0.0 : frames_time.first;
-  const double time_max = frames.empty() ? 0.0 : frames_time.second;
+  const double time_min = frame_count == 0 ? 0.0 : frames_time.first;
+  const double time_max = frame_count == 0 ? 0.0 : frames_time.second;
   const std::string application = application_json;
   const auto planned = planned_bounds_px;
   application_dirty = false;
@@ -998,6 +1048,11 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       published_at.pop_front();
     }
     ++stats.publishes;
+    // Records now in frames.gpkg leave memory, unless put again since.
+    for (const FrameRecord& record : frames_to_write) {
+      const auto held = frames.find(record.index);
+      if (held != frames.end() && SameRecord(held->second, record)) frames.erase(held);
+    }
     auto it = request_time_of.find(generation);
     if (it != request_time_of.end()) {
       publish_latencies_ms.push_back(MsSince(it->second));
@@ -1164,7 +1219,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     s.planned_bounds_px = s.manifest.planned_bounds_px;
     s.published_generation = s.requested_generation = s.started_generation = s.manifest.generation;
     for (const FrameRecord& record : store::ReadFramesGpkg(s.root / "frames.gpkg")) {
-      s.frames[record.index] = record;
+      s.frame_times.Set(record.index, record.time_s);
     }
     // Temporaries of an interrupted publish are garbage: the manifest never named them.
     for (const auto& entry : fs::recursive_directory_iterator(s.root, error)) {
@@ -1215,8 +1270,9 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
       impl->manifest.levels.empty() ? store::LevelTiles{} : impl->manifest.levels[0];
   impl->published_generation = impl->manifest.generation;
   impl->application_json = impl->manifest.application_json;
+  // Read from frames.gpkg by FrameRecords(): checked here, so a damaged store fails to open.
   for (const FrameRecord& record : store::ReadFramesGpkg(impl->root / "frames.gpkg")) {
-    impl->frames[record.index] = record;
+    impl->frame_times.Set(record.index, record.time_s);
   }
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }
@@ -1331,19 +1387,29 @@ void TileStore::PutFrameRecord(const FrameRecord& record) {
                      "number frames from 0");
   }
   std::lock_guard<std::mutex> lock(s.mutex);
-  auto [it, inserted] = s.frames.try_emplace(record.index, record);
-  if (!inserted) {
-    if (it->second.time_s != record.time_s) s.frames_time_stale = true;
-    it->second = record;
-  }
+  const std::optional<double> old_time = s.frame_times.Set(record.index, record.time_s);
+  if (old_time && *old_time != record.time_s) s.frames_time_stale = true;
+  s.frames[record.index] = record;
   if (!s.frames_time_stale) s.WidenFramesTime(record.time_s);
   s.frames_changed.push_back(record);
 }
 
 std::vector<FrameRecord> TileStore::FrameRecords() const {
-  std::lock_guard<std::mutex> lock(impl_->mutex);
+  // The records in memory first, then frames.gpkg's: a record written and dropped meanwhile
+  // is in the file by then, and one put meanwhile is newer than this call.
+  std::map<int64_t, FrameRecord> held;
+  {
+    std::lock_guard<std::mutex> lock(impl_->mutex);
+    held = impl_->frames;
+  }
+  std::map<int64_t, FrameRecord> all;
+  for (FrameRecord& record : store::ReadFramesGpkg(impl_->root / "frames.gpkg")) {
+    all[record.index] = std::move(record);
+  }
+  for (auto& [index, record] : held) all[index] = std::move(record);
   std::vector<FrameRecord> records;
-  for (const auto& [index, record] : impl_->frames) records.push_back(record);
+  records.reserve(all.size());
+  for (auto& [index, record] : all) records.push_back(std::move(record));
   return records;
 }
 
@@ -1502,6 +1568,7 @@ TileStore::Stats TileStore::stats() const {
   const Impl& s = *impl_;
   std::lock_guard<std::mutex> lock(s.mutex);
   Stats out = s.stats;
+  out.frame_records_held = s.frames.size();
   std::vector<double> latencies = s.publish_latencies_ms;
   if (!latencies.empty()) {
     std::sort(latencies.begin(), latencies.end());

@@ -558,6 +558,78 @@ TEST(MosaickerApiTest, GenerationsWindowAndRecordsAgreeWithWhatGdalReads) {
 // where the store put it, and asks back only for the frames still in the optimizer's window.
 // A record whose placement is not finite (NaN is written as null) is refused, naming the store
 // and the frame, instead of placing frames at NaN.
+// Memory flat over a flight: with a store, the placements of frames that left the window are
+// read back from the frozen frames' file, and the frame records from frames.gpkg, instead of
+// held for the whole flight; Placements() and FrameRecords() return the same as with
+// everything held (every field of every placement, exactly), while the fusion holds no more
+// than its windows and the store no more than the records not yet written.
+TEST(MosaickerApiTest, FrozenPlacementsAndRecordsLeaveMemoryAndReadBackExactly) {
+  constexpr int kFrames = 40;
+  FlightSimulator sim(Flight(kFrames));
+  auto run = [&sim](bool keep, const std::string& name) {
+    MosaickerOptions options;
+    options.store_path = TempStore(name);
+    options.mode = TileStoreOptions::Mode::kOverwrite;
+    options.fusion.window_frames = 4;
+    options.fusion.optimize = false;  // Deterministic: both runs place alike.
+    options.keep_placements_in_memory = keep;
+    options.overview_interval_s = 0.0;  // frames.gpkg with every publish.
+    auto m = std::make_unique<Mosaicker>(options, sim.camera(), sim.MeasuredPos());
+    int64_t most_held = 0;
+    size_t most_records = 0;
+    for (int i = 0; i < kFrames; ++i) {
+      const SimFrame f = sim.Render(i);
+      EXPECT_TRUE(m->Push(i, f.time_s, f.image).placed()) << i;
+      m->RequestPublish();  // With the resume record (frozen frames to their file), then wait.
+      m->WaitPublished(m->store()->RequestPublish());
+      most_held = std::max(most_held, m->summary().fusion.placements_held);
+      most_records = std::max(most_records, m->store()->stats().frame_records_held);
+    }
+    m->Finish();
+    return std::make_tuple(m->Placements(), m->FrameRecords(), most_held, most_records);
+  };
+  const auto [kept, kept_records, kept_held, kept_most_records] = run(true, "kept");
+  const auto [read, read_records, read_held, read_most_records] = run(false, "released");
+  std::printf("placements held at most: %lld of %d kept, %lld released; records held at most %zu\n",
+              static_cast<long long>(kept_held), kFrames, static_cast<long long>(read_held),
+              read_most_records);
+  EXPECT_EQ(kept_held, kFrames);
+  // The window (4 frames, held up to 2 windows) and the bases of its pairs (a sweep, 8 frames,
+  // back), and the frames placed since the last publish: a bound that does not grow.
+  EXPECT_LE(read_held, 20);
+  EXPECT_LE(read_most_records, 2u);  // Written with each publish, so at most the newest.
+  ASSERT_EQ(read.size(), kept.size());
+  ASSERT_EQ(read.size(), static_cast<size_t>(kFrames));
+  for (size_t k = 0; k < kept.size(); ++k) {
+    const FramePlacement& a = kept[k];
+    const FramePlacement& b = read[k];
+    EXPECT_EQ(a.index, b.index);
+    EXPECT_EQ(a.time_s, b.time_s) << k;
+    EXPECT_EQ(a.mosaic_from_image, b.mosaic_from_image) << k;
+    EXPECT_EQ(a.pos_mosaic_from_image, b.pos_mosaic_from_image) << k;
+    EXPECT_EQ(a.pos_only, b.pos_only) << k;
+    EXPECT_EQ(a.neighbours, b.neighbours) << k;
+    EXPECT_EQ(a.inliers, b.inliers) << k;
+    EXPECT_EQ(a.residual_px, b.residual_px) << k;
+    EXPECT_EQ(a.gain, b.gain) << k;
+    EXPECT_EQ(a.offset, b.offset) << k;
+    EXPECT_EQ(a.optimized_times, b.optimized_times) << k;
+    EXPECT_EQ(a.note, b.note) << k;
+  }
+  ASSERT_EQ(read_records.size(), kept_records.size());
+  ASSERT_EQ(read_records.size(), static_cast<size_t>(kFrames));
+  for (size_t k = 0; k < read_records.size(); ++k) {
+    EXPECT_EQ(read_records[k].index, static_cast<int64_t>(k));
+    EXPECT_EQ(read_records[k].time_s, kept_records[k].time_s);
+    EXPECT_EQ(read_records[k].status, kept_records[k].status);
+    for (int c = 0; c < 4; ++c) {
+      EXPECT_LT((read_records[k].footprint_m[c] - kept_records[k].footprint_m[c]).norm(), 1e-6);
+    }
+  }
+  fs::remove_all(TempStore("kept"));
+  fs::remove_all(TempStore("released"));
+}
+
 TEST(MosaickerApiTest, AResumedStoreHoldsEveryRecordedPlacementAndRefusesADamagedOne) {
   FlightSimulator sim(Flight(24));
   MosaickerOptions options;

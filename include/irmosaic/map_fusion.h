@@ -187,6 +187,7 @@ struct FusionStats {
   double total_solve_cpu_ms = 0.0;   // wall time, not this).
   int64_t optimizer_lag_frames = 0;  // Frames pushed but not yet in a finished solve.
   int64_t held_frames = 0;           // Frames held (placements, footprints, ends of pairs).
+  int64_t placements_held = 0;       // Placements in memory (all but the released ones).
   int64_t held_images = 0;           // Of those, frames that still hold their image,
   int64_t held_image_bytes = 0;      // and the bytes of those images (summed per frame).
   int64_t spilled_images = 0;        // Held images on disk now (FusionOptions::images_in_memory),
@@ -212,6 +213,10 @@ struct FusionResumeState {
   };
   std::vector<FramePlacement> placements;  // In push order, from slot `first_slot` on.
   size_t first_slot = 0;                   // Push-order position of placements.front().
+  // Frames before first_slot (not in `placements`; Resume with first_slot > 0): how many were
+  // registered and how many placed from POS alone, for FusionStats. ResumeState sets 0.
+  int64_t released_registered = 0;
+  int64_t released_pos_only = 0;
   size_t frozen_slots = 0;         // Frames before this push-order position never change again.
   int64_t held_from = -1;          // Index of the oldest frame held (-1: none).
   std::vector<Pair> pairs;         // Pairs still in use (each one's template frame is held).
@@ -244,22 +249,31 @@ class IRMOSAIC_EXPORT MapFusion {
   // Runs a last solve over the window, re-renders what moved and stops the thread.
   void Finish();
 
-  // Latest placement of every frame pushed so far (and of every frame given to Resume).
+  // Latest placement of every frame pushed so far (and of every frame given to Resume), from
+  // the first one not released (ReleasePlacements) on, in push order.
   std::vector<FramePlacement> Placements() const;
+
+  // Drops the placements before push-order position `before_slot` that can never change or be
+  // read again (frozen: older than the window, than the bases of its pairs, than a running
+  // solve's or a replay's frames), for a caller that keeps them itself (the Mosaicker's frozen
+  // frames' file), so that memory does not grow with the flight. Returns the first slot still
+  // held (the new start of Placements()).
+  size_t ReleasePlacements(size_t before_slot);
 
   // A consistent snapshot of the state a resumed run needs, with the placements from push-order
   // position `from_slot` on (a caller that kept the frozen ones asks for the rest only).
   FusionResumeState ResumeState(size_t from_slot = 0) const;
-  // Starts from a recorded state instead of empty, before the first Push: its placements (all
-  // of them, first_slot 0) become the placements of those frames. The frames from
-  // state.ReplayFrom() to the last recorded one must then be pushed again, in order, as
+  // Starts from a recorded state instead of empty, before the first Push: its placements
+  // become the placements of those frames (from first_slot on: the older ones count as
+  // released, and must be frozen; the state must hold every frame from ReplayFrom() on). The frames
+  // from state.ReplayFrom() to the last recorded one must then be pushed again, in order, as
   // before: each is re-registered to the neighbours the record names and keeps its recorded
   // placement (nothing is rendered or solved). The first newer frame (or Finish) ends the
   // replay: frames older than held_from leave the window, a solve that was running at the
   // record is run again, and the optimizer goes on. Frames older than ReplayFrom() are never
-  // pushed again: they stay frozen at their recorded placement (their pos_mosaic_from_image,
-  // not recorded, is set to it). Throws std::invalid_argument after a Push, for duplicate
-  // indices, or later from Push for a replayed frame the record does not hold.
+  // pushed again: they stay frozen at their recorded placement. Throws std::invalid_argument after
+  // a Push, for duplicate indices, or later from Push for a replayed frame the record does not
+  // hold.
   void Resume(FusionResumeState state);
   FusionStats stats() const;
 

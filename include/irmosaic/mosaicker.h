@@ -100,6 +100,11 @@ struct MosaickerOptions {
   // reaches back 8 frames in the bundled sample's sweeps, so with 32 the reads serve the
   // re-renders (docs/benchmarks.md, "Session 13").
   int images_in_memory = 32;
+  // With a store, placements of frames that left the optimization window are read back from
+  // the store's frozen frames' file (resume_frames.jsonl) by Placements() instead of kept in
+  // memory, so memory does not grow with the flight (~0.4 KiB per frame otherwise). true keeps
+  // them all in memory.
+  bool keep_placements_in_memory = false;
   FusionOptions fusion;
   // How neighbouring frames are registered (SCD + FLSM + RANSAC): PipelineRegistrationOptions()
   // unless changed, e.g. fine.lsm_level.

@@ -130,7 +130,10 @@ class IRMOSAIC_EXPORT TileStore {
   // Inserts or replaces (by index) a frame's footprint record; published with the next
   // generation.
   void PutFrameRecord(const FrameRecord& record);
-  // Frame records known to the store (published ones after a resume, plus those put since).
+  // Frame records known to the store (published ones after a resume, plus those put since),
+  // by index. The store holds only those not yet written to frames.gpkg; the rest are read
+  // from it (so memory does not grow with the flight). Throws InputError if frames.gpkg
+  // cannot be read.
   std::vector<FrameRecord> FrameRecords() const;
 
   // Caller state saved in manifest.json with each publish (e.g. what `run --resume` needs);
@@ -200,6 +203,8 @@ class IRMOSAIC_EXPORT TileStore {
     double publish_p99_ms = 0.0;    // ... 99th percentile.
     double publish_max_ms = 0.0;    // ... worst.
     size_t cached_tiles = 0;        // Level-0 tiles in memory now.
+    // Frame records in memory now: those put and not yet written to frames.gpkg.
+    size_t frame_records_held = 0;
     // Tiles whose images wait in memory for an overview update, under way or next, each halved:
     // those owed since the last update started are at most 4 x max_cached_tiles after each
     // publish; an update under way holds at most as many again, and a third more.
