@@ -10,6 +10,7 @@
 #include "buffer_view.h"
 #include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
+#include "warp_bilinear16.h"
 
 namespace irmosaic {
 
@@ -171,7 +172,13 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
         Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
     std::array<Eigen::Vector2d, 4> footprint;
     for (int c = 0; c < 4; ++c) footprint[c] = ApplyHomography(out->ortho_from_image, corners[c]);
-    if (!options_.footprint_only) {
+    // OrthoOptions::exact_bilinear_16bit: the own warp, where it takes the frame.
+    const bool own_warp = options_.exact_bilinear_16bit &&
+                          options_.interpolation == cv::INTER_LINEAR && frame.type() == CV_16UC1;
+    if (!options_.footprint_only && own_warp) {
+      out->image.create(size, frame.type());
+      warp::WarpBilinear16(frame, image_from_ortho, &out->image);
+    } else if (!options_.footprint_only) {
       if (use_affine) {
         cv::warpAffine(frame, out->image, m, size, options_.interpolation | cv::WARP_INVERSE_MAP,
                        cv::BORDER_REPLICATE);
@@ -198,7 +205,10 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
         if (band_x1 < size.width) band.colRange(band_x1, size.width).setTo(0);
         cv::Mat part = band.colRange(band_x0, band_x1);
         const double sx = band_x0, sy = band_y0;
-        if (use_affine) {
+        if (own_warp) {
+          const cv::Matx33d band_shift(1, 0, sx, 0, 1, sy, 0, 0, 1);
+          warp::WarpBilinear16(frame, image_from_ortho * band_shift, &part);
+        } else if (use_affine) {
           cv::Matx23d shifted = m;
           shifted(0, 2) += m(0, 0) * sx + m(0, 1) * sy;
           shifted(1, 2) += m(1, 0) * sx + m(1, 1) * sy;

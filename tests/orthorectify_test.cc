@@ -4,7 +4,10 @@
 #include <gtest/gtest.h>
 
 #include <opencv2/imgproc.hpp>
+#include <random>
 
+#include "../src/simd_dispatch.h"
+#include "../src/warp_bilinear16.h"
 #include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -195,6 +198,85 @@ TEST(OrthorectifyTest, FootprintOnlyWarpsTheFootprintAndMatchesTheWholeBox) {
       EXPECT_LT(cv::countNonZero(resampled), 0.6 * b.image.total());
     }
   }
+}
+
+// The own 16-bit warp (OrthoOptions::exact_bilinear_16bit) computes positions in float instead
+// of OpenCV's 1/32 px: on a ramp its values are the exact bilinear ones but for the rounding to
+// 16 bits (0.5 DN, 0.0104 px at this gradient), over the whole box and over the footprint.
+TEST(OrthorectifyTest, ExactBilinearWarpPlacesPixelsWithinTheRoundingOf16Bits) {
+  const CameraModel camera = DefaultInfraredCamera();
+  const double gx = 40.0, gy = 27.0;
+  const cv::Mat frame = Ramp(camera.width, camera.height, gx, gy);
+  for (const bool footprint_only : {false, true}) {
+    OrthoOptions options;
+    options.exact_bilinear_16bit = true;
+    options.footprint_only = footprint_only;
+    for (const double sweep : {-35.0, 0.0}) {
+      const OrthoImage ortho =
+          Orthorectify(frame, camera, ObliqueHomography(camera, sweep), options);
+      ASSERT_EQ(ortho.image.type(), CV_16U);
+      double worst_dn = 0.0;
+      int checked = 0;
+      const Eigen::Matrix3d image_from_ortho = ortho.ortho_from_image.inverse();
+      for (int y = 0; y < ortho.image.rows; y += 7) {
+        for (int x = 0; x < ortho.image.cols; x += 5) {
+          if (ortho.mask.at<uint8_t>(y, x) == 0) continue;
+          const Eigen::Vector2d back = ApplyHomography(image_from_ortho, {x, y});
+          // Inside the frame by a pixel (the border replicates, the ramp does not).
+          if (back.x() < 0 || back.y() < 0 || back.x() > camera.width - 1 ||
+              back.y() > camera.height - 1) {
+            continue;
+          }
+          const double expected = 1000 + gx * back.x() + gy * back.y();
+          worst_dn = std::max(worst_dn, std::abs(expected - ortho.image.at<uint16_t>(y, x)));
+          ++checked;
+        }
+      }
+      EXPECT_GT(checked, 1000);
+      // 0.5 DN of rounding, and the ramp's own rounding to integers at the samples (0.5 DN).
+      EXPECT_LT(worst_dn / std::hypot(gx, gy), 0.025)
+          << worst_dn << " DN, sweep " << sweep << ", footprint only " << footprint_only;
+    }
+  }
+}
+
+// The own warp's AVX2 path (8 pixels at a time, chosen at run time) gives the very values of its
+// scalar path: row lengths 1-37 (every tail), projective and affine maps, positions far
+// outside the frame (replicated border) and behind the camera (clamped, no crash).
+TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
+  if (!simd::Avx2()) GTEST_SKIP() << "this CPU has no AVX2: only the scalar path runs";
+  std::mt19937 rng(5);
+  cv::Mat src(512, 640, CV_16U);
+  cv::randu(src, 0, 65536);
+  const CameraModel camera = DefaultInfraredCamera();
+  std::vector<cv::Matx33d> maps;
+  for (const double sweep : {-35.0, -10.0, 0.0}) {
+    const Eigen::Matrix3d h = ObliqueHomography(camera, sweep).inverse();
+    cv::Matx33d m;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) m(r, c) = h(r, c) / h(2, 2);
+    maps.push_back(m * cv::Matx33d(1, 0, -2000, 0, 1, -1500, 0, 0, 1));
+  }
+  maps.push_back(cv::Matx33d(0.93, 0.21, 17.25, -0.17, 1.07, -3.5, 0, 0, 1));
+  maps.push_back(cv::Matx33d(1.5, 0.0, -100.0, 0.0, 1.5, -90.0, 0.001, 0.0004, 0.2));
+  maps.push_back(cv::Matx33d(1, 0, 0, 0, 1, 0, -0.01, 0, 1));  // W crosses 0 at x = 100.
+  std::uniform_int_distribution<int> offset(0, 700);
+  int compared = 0;
+  for (const cv::Matx33d& m : maps) {
+    for (int width = 1; width <= 37; ++width) {
+      const cv::Matx33d shift(1, 0, offset(rng), 0, 1, offset(rng) * 0.7, 0, 0, 1);
+      cv::Mat fast(3, width, CV_16U), scalar(3, width, CV_16U);
+      ASSERT_TRUE(warp::WarpBilinear16(src, m * shift, &fast));
+      ASSERT_TRUE(warp::WarpBilinear16Scalar(src, m * shift, &scalar));
+      ASSERT_EQ(cv::norm(fast, scalar, cv::NORM_INF), 0.0) << "width " << width;
+      compared += width * 3;
+    }
+  }
+  EXPECT_EQ(compared, 6 * 3 * 37 * 38 / 2);
+  // Not its business: other types and tiny frames go to OpenCV.
+  cv::Mat out(4, 4, CV_16U);
+  EXPECT_FALSE(warp::WarpBilinear16(cv::Mat(4, 4, CV_8U, cv::Scalar(1)), maps[3], &out));
+  EXPECT_FALSE(warp::WarpBilinear16(cv::Mat(1, 4, CV_16U, cv::Scalar(1)), maps[3], &out));
 }
 
 TEST(OrthorectifyTest, BadFramesAreRefused) {

@@ -28,6 +28,12 @@ struct OrthoOptions {
   // replicating the frame's border. A rotated oblique footprint covers about half of its box,
   // so this halves the warp; for callers that read the image under the mask only (rendering).
   bool footprint_only = false;
+  // 16-bit frames, bilinear, without lens distortion: resampled by irmosaic's own warp
+  // (positions exact in float where OpenCV rounds them to 1/32 px; AVX2 where the CPU has it,
+  // where OpenCV 4.6 runs scalar code for 16 bits; the same output on every CPU) instead of
+  // OpenCV's warpPerspective / warpAffine: 2.7-3.5x faster per orthoimage with AVX2, ~0.7-1x
+  // without (bench/ortho_bench). false: OpenCV's.
+  bool exact_bilinear_16bit = true;
 };
 
 // Warps `frame` (CV_8U, CV_16U or CV_32F, one channel) with the correction homography
