@@ -31,7 +31,7 @@ struct OrthoOptions {
   // 16-bit frames, bilinear, without lens distortion: resampled by irmosaic's own warp
   // (positions exact in float where OpenCV rounds them to 1/32 px; AVX2 where the CPU has it,
   // where OpenCV 4.6 runs scalar code for 16 bits; the same output on every CPU) instead of
-  // OpenCV's warpPerspective / warpAffine: 2.7-3.5x faster per orthoimage with AVX2, ~0.7-1x
+  // OpenCV's warpPerspective / warpAffine: 2.1-4.1x faster per orthoimage with AVX2, ~0.7-1x
   // without (bench/ortho_bench). false: OpenCV's.
   bool exact_bilinear_16bit = true;
 };
