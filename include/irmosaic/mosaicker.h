@@ -234,7 +234,11 @@ class IRMOSAIC_EXPORT Mosaicker {
   const std::string& resume_warning() const;
 
   MosaickerSummary summary() const;
-  // Placement of every frame placed so far (latest estimate, refined by the optimizer).
+  // Placement of every frame placed so far (latest estimate, refined by the optimizer). With a
+  // store, those of frames that left the optimization window are read back from its frozen
+  // frames' file (keep_placements_in_memory), so each call parses the flight so far: for a
+  // caller that asks now and then (the end of a run, a report), not per frame. Throws
+  // InputError if that file cannot be read.
   std::vector<FramePlacement> Placements() const;
   // Per-frame records as the store keeps them in frames.gpkg (footprint on the mosaic plane,
   // registration quality); empty before the first placed frame.
