@@ -7,7 +7,7 @@
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
 //                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
 //                [--ground-cache-mb N]
-//                [--lsm-level N]
+//                [--lsm-level N] [--seed N] [--bit-depth 8|16]
 //                [--malloc-info DIR] [--exit-before-finish]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
@@ -134,6 +134,10 @@ struct Tuning {
   // sample flight's own. Another seed is another flight over the same ground: accuracy
   // comparisons of two builds over a few seeds tell a change from one flight's luck.
   uint64_t seed = 0;
+  // The simulated frames' sample depth (8 or 16); 0 keeps the sample flight's (16). 8-bit frames
+  // make a store of Byte tiles, half the disk of UInt16: an hour of this flight (90,000 frames)
+  // takes ~65 GB of store at 16 bits.
+  int bit_depth = 0;
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
   // not adopted: docs/benchmarks.md. Takes effect with --heap-tuning 0 only: the Mosaicker's
@@ -157,6 +161,7 @@ irmosaic::SynthOptions FlightOptions(int frames) {
   options.frame_count = frames;
   if (g_tuning.ground_cache_mb > 0) options.ground_cache_mb = g_tuning.ground_cache_mb;
   if (g_tuning.seed > 0) options.seed = g_tuning.seed;
+  if (g_tuning.bit_depth > 0) options.sensor.bit_depth = g_tuning.bit_depth;
   return options;
 }
 
@@ -318,6 +323,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   double last_wall = 0.0, last_cpu = 0.0, producer_cpu = 0.0, push_wall_s = 0.0;
   std::vector<double> intake_lag_s;
   double push_cpu_s = 0.0;  // The caller's thread inside Push (registration, render, paint).
+  double last_push_cpu = 0.0, last_writer_cpu_ms = 0.0, last_index_ms = 0.0;
+  int64_t last_tiles_written = 0;
   int last_frames = 0;
   Clock::time_point start;
   {
@@ -351,6 +358,12 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
         }
         const double wall = Since(start);
         const double cpu = ProcessCpuSeconds() - cpu0 - producer.cpu_s();
+        // Per thread, so that a cost growing with the flight shows where it grows: the
+        // foreground's Push (registration, render, paint: nothing in it grows with the flight)
+        // against the writer's and its index (VRTs, manifest.json: they grow with the blocks
+        // of tiles the store holds). A drift of the machine moves all alike.
+        const irmosaic::TileStore::Stats store_now = mosaicker.store()->stats();
+        const double frames_in_segment = std::max<double>(1.0, pushed - last_frames);
         checkpoints.push_back(
             {{"percent", 100.0 * static_cast<double>(pushed) / config.frames},
              {"frames", pushed},
@@ -358,6 +371,15 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              {"segment_frames_per_s", (pushed - last_frames) / std::max(1e-9, wall - last_wall)},
              {"segment_cpu_ms_per_frame",
               1000.0 * (cpu - last_cpu) / std::max<int64_t>(1, pushed - last_frames)},
+             {"segment_push_cpu_ms_per_frame",
+              1000.0 * (push_cpu_s - last_push_cpu) / frames_in_segment},
+             {"segment_writer_cpu_ms_per_frame",
+              (store_now.writer_cpu_ms - last_writer_cpu_ms) / frames_in_segment},
+             {"segment_index_ms_per_frame",
+              (store_now.index_ms_total - last_index_ms) / frames_in_segment},
+             {"segment_tiles_written_per_frame",
+              static_cast<double>(store_now.tiles_written - last_tiles_written) /
+                  frames_in_segment},
              {"rss_mib", StatusMiB("VmRSS")},
              {"peak_rss_mib", StatusMiB("VmHWM")},
              {"optimizer_lag_frames", mosaicker.summary().fusion.optimizer_lag_frames},
@@ -372,7 +394,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
         const auto& c = checkpoints.back();
         std::cerr << "flight_bench: " << pushed << "/" << config.frames << " frames, "
                   << c["segment_frames_per_s"].get<double>() << " frames/s, "
-                  << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame, RSS "
+                  << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame (Push "
+                  << c["segment_push_cpu_ms_per_frame"].get<double>() << ", writer "
+                  << c["segment_writer_cpu_ms_per_frame"].get<double>() << ", index "
+                  << c["segment_index_ms_per_frame"].get<double>() << "; tiles written "
+                  << c["segment_tiles_written_per_frame"].get<double>() << "/frame), RSS "
                   << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
                   << "), images held " << c["held_images"].get<int64_t>() << " ("
                   << c["held_image_mib"].get<double>() << " MiB), simulator's ground cache "
@@ -381,6 +407,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
                   << c["heap_free_mib"].get<double>() << " MiB" << std::endl;
         last_wall = wall;
         last_cpu = cpu;
+        last_push_cpu = push_cpu_s;
+        last_writer_cpu_ms = store_now.writer_cpu_ms;
+        last_index_ms = store_now.index_ms_total;
+        last_tiles_written = store_now.tiles_written;
         last_frames = static_cast<int>(pushed);
         ++next_mark;
       }
@@ -634,7 +664,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    "--cv-threads",
                                    std::to_string(g_tuning.cv_threads),
                                    "--seed",
-                                   std::to_string(g_tuning.seed)};
+                                   std::to_string(g_tuning.seed),
+                                   "--bit-depth",
+                                   std::to_string(g_tuning.bit_depth)};
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
@@ -790,6 +822,12 @@ int main(int argc, char** argv) {
       g_tuning.cv_threads = std::stoi(value());
     } else if (a == "--seed") {
       g_tuning.seed = std::stoull(value());
+    } else if (a == "--bit-depth") {
+      g_tuning.bit_depth = std::stoi(value());
+      if (g_tuning.bit_depth != 0 && g_tuning.bit_depth != 8 && g_tuning.bit_depth != 16) {
+        std::cerr << "flight_bench: --bit-depth must be 8 or 16\n";
+        return 2;
+      }
     } else if (a == "--child") {
       child = value();
     } else {
@@ -805,7 +843,8 @@ int main(int argc, char** argv) {
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
-                   "[--cv-threads N] [--seed N] [--malloc-info DIR] [--exit-before-finish]\n";
+                   "[--cv-threads N] [--seed N] [--bit-depth 8|16] [--malloc-info DIR] "
+                   "[--exit-before-finish]\n";
       return 2;
     }
   }
@@ -852,6 +891,7 @@ int main(int argc, char** argv) {
   doc["mmap_threshold"] = g_tuning.mmap_threshold;
   doc["cv_threads"] = g_tuning.cv_threads;
   doc["seed"] = FlightOptions(1).seed;
+  doc["bit_depth"] = FlightOptions(1).sensor.bit_depth;
   std::cout << "flight_bench: " << doc["machine"].get<std::string>() << "\n";
 
   if (frames > 0) {
@@ -864,14 +904,18 @@ int main(int argc, char** argv) {
     std::cout << "\nAs fast as possible, " << frames << " frames ("
               << (optimize ? "with" : "without") << " the optimizer):\n"
               << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
-              << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(10)
+              << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(8)
+              << "Push" << std::setw(8) << "writer" << std::setw(8) << "index" << std::setw(10)
               << "RSS MiB" << std::setw(11) << "peak MiB" << std::setw(17) << "sim cache MiB"
               << "\n";
     for (const auto& c : f["checkpoints"]) {
       std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
                 << std::setw(10) << Fixed(c["wall_s"], 1) << std::setw(12)
                 << Fixed(c["segment_frames_per_s"], 1) << std::setw(14)
-                << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(10)
+                << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(8)
+                << Fixed(c["segment_push_cpu_ms_per_frame"], 1) << std::setw(8)
+                << Fixed(c["segment_writer_cpu_ms_per_frame"], 1) << std::setw(8)
+                << Fixed(c["segment_index_ms_per_frame"], 2) << std::setw(10)
                 << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0)
                 << std::setw(17) << Fixed(c["simulator_cache_mib"], 0) << "\n";
     }
