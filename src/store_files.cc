@@ -484,9 +484,20 @@ std::string ManifestToJson(const Manifest& manifest) {
     j["planned_bounds_px"] = {
         {"col_min", p[0]}, {"row_min", p[1]}, {"col_max", p[2]}, {"row_max", p[3]}};
   }
-  j["application"] =
-      manifest.application_json.empty() ? json(nullptr) : json::parse(manifest.application_json);
-  return j.dump(1) + "\n";
+  if (manifest.application_json.empty()) {
+    j["application"] = nullptr;
+    return j.dump(1) + "\n";
+  }
+  // The application's state goes in as the text it came as, last (TileStore::SetApplicationState
+  // checked that it is JSON): the Mosaicker's is its optimizer window, ~0.4 MB, and parsing it
+  // and writing it out again at every publish was most of the index's cost.
+  std::string text = j.dump(1);  // "{\n \"format\": ...\n}": the closing "\n}" comes off.
+  text.resize(text.size() - 2);
+  text.reserve(text.size() + manifest.application_json.size() + 24);
+  text += ",\n \"application\": ";
+  text += manifest.application_json;
+  text += "\n}\n";
+  return text;
 }
 
 namespace {

@@ -424,6 +424,39 @@ TEST(TileStoreTest, UInt16BlendMatchesTheContractExactly) {
   EXPECT_EQ(wrong, 0) << "of " << area.area() << " samples";
 }
 
+// The caller's state goes into manifest.json as the text it was given (the Mosaicker's is its
+// optimizer window, ~0.4 MB at each publish): not parsed and formatted again by the writer.
+TEST(TileStoreTest, ApplicationStateIsWrittenVerbatimAndReadsBack) {
+  const fs::path dir = FreshDir("application") / "s.irmosaic";
+  // Spacing, key order and a number's trailing zero that formatting the JSON again would change.
+  const std::string state = R"({"window": [1.250, -0.5e1],  "frozen": {"frames": 3}})";
+  {
+    auto store = TileStore::Open(Options(dir), Georef());
+    EXPECT_THROW(store->SetApplicationState(R"({"window": [1.25,)"), InputError);
+    PaintSquare(store.get(), {0, 0}, 32, 500);
+    store->SetApplicationState(state);
+    store->WaitPublished(store->RequestPublish());
+    std::ifstream in(dir / "manifest.json");
+    const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    EXPECT_NE(text.find("\"application\": " + state + "\n}"), std::string::npos) << text;
+    const nlohmann::json manifest = nlohmann::json::parse(text);  // Still one JSON document.
+    EXPECT_EQ(manifest["application"], nlohmann::json::parse(state));
+    EXPECT_EQ(manifest["format"], "irmosaic-store");
+    store->SetApplicationState("");
+    PaintSquare(store.get(), {64, 0}, 32, 500);
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_TRUE(
+        nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["application"].is_null());
+    store->SetApplicationState(state);
+    store->Close();
+  }
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  auto store = TileStore::Open(resume, Georef());
+  EXPECT_EQ(nlohmann::json::parse(store->application_state()), nlohmann::json::parse(state));
+  store->Close();
+}
+
 TEST(TileStoreTest, ExistingStoreNeedsResumeOrOverwriteAndResumeContinues) {
   const fs::path dir = FreshDir("resume") / "s.irmosaic";
   {

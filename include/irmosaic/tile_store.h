@@ -137,7 +137,8 @@ class IRMOSAIC_EXPORT TileStore {
   std::vector<FrameRecord> FrameRecords() const;
 
   // Caller state saved in manifest.json with each publish (e.g. what `run --resume` needs);
-  // any JSON text, stored verbatim under "application". Empty: nothing.
+  // any JSON text (checked here: InputError if it is not), stored verbatim under "application",
+  // the manifest's last member. Empty: nothing.
   void SetApplicationState(const std::string& json_text);
   // The application state of the last published (or resumed) manifest.
   std::string application_state() const;
