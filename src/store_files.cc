@@ -490,7 +490,8 @@ std::string ManifestToJson(const Manifest& manifest) {
   }
   // The application's state goes in as the text it came as, last (TileStore::SetApplicationState
   // checked that it is JSON): the Mosaicker's is its optimizer window, ~0.4 MB, and parsing it
-  // and writing it out again at every publish was most of the index's cost.
+  // and writing it out again at every publish was ~40 % of the index's time (docs/benchmarks.md,
+  // "Session 26").
   std::string text = j.dump(1);  // "{\n \"format\": ...\n}": the closing "\n}" comes off.
   text.resize(text.size() - 2);
   text.reserve(text.size() + manifest.application_json.size() + 24);
