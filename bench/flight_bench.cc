@@ -135,8 +135,8 @@ struct Tuning {
   // comparisons of two builds over a few seeds tell a change from one flight's luck.
   uint64_t seed = 0;
   // The simulated frames' sample depth (8 or 16); 0 keeps the sample flight's (16). 8-bit frames
-  // make a store of Byte tiles, half the disk of UInt16: an hour of this flight (90,000 frames)
-  // takes ~65 GB of store at 16 bits.
+  // make a store of Byte tiles, a third of the disk of UInt16 here (234 against ~750 KiB per
+  // frame): an hour of this flight (90,000 frames) takes ~65 GB of store at 16 bits.
   int bit_depth = 0;
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
@@ -361,7 +361,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
         // Per thread, so that a cost growing with the flight shows where it grows: the
         // foreground's Push (registration, render, paint: nothing in it grows with the flight)
         // against the writer's and its index (VRTs, manifest.json: they grow with the blocks
-        // of tiles the store holds). A drift of the machine moves all alike.
+        // of tiles the store holds). A drift of the machine moves all alike. Push and the writer
+        // are CPU time; the index is the writer's wall time in it (TileStore::Stats).
         const irmosaic::TileStore::Stats store_now = mosaicker.store()->stats();
         const double frames_in_segment = std::max<double>(1.0, pushed - last_frames);
         checkpoints.push_back(
@@ -369,8 +370,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              {"frames", pushed},
              {"wall_s", wall},
              {"segment_frames_per_s", (pushed - last_frames) / std::max(1e-9, wall - last_wall)},
-             {"segment_cpu_ms_per_frame",
-              1000.0 * (cpu - last_cpu) / std::max<int64_t>(1, pushed - last_frames)},
+             {"segment_cpu_ms_per_frame", 1000.0 * (cpu - last_cpu) / frames_in_segment},
              {"segment_push_cpu_ms_per_frame",
               1000.0 * (push_cpu_s - last_push_cpu) / frames_in_segment},
              {"segment_writer_cpu_ms_per_frame",
@@ -396,7 +396,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
                   << c["segment_frames_per_s"].get<double>() << " frames/s, "
                   << c["segment_cpu_ms_per_frame"].get<double>() << " CPU ms/frame (Push "
                   << c["segment_push_cpu_ms_per_frame"].get<double>() << ", writer "
-                  << c["segment_writer_cpu_ms_per_frame"].get<double>() << ", index "
+                  << c["segment_writer_cpu_ms_per_frame"].get<double>() << ", index (wall) "
                   << c["segment_index_ms_per_frame"].get<double>() << "; tiles written "
                   << c["segment_tiles_written_per_frame"].get<double>() << "/frame), RSS "
                   << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
@@ -905,7 +905,7 @@ int main(int argc, char** argv) {
               << (optimize ? "with" : "without") << " the optimizer):\n"
               << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(10) << "wall s"
               << std::setw(12) << "frames/s" << std::setw(14) << "CPU ms/frame" << std::setw(8)
-              << "Push" << std::setw(8) << "writer" << std::setw(8) << "index" << std::setw(10)
+              << "Push" << std::setw(8) << "writer" << std::setw(8) << "index*" << std::setw(10)
               << "RSS MiB" << std::setw(11) << "peak MiB" << std::setw(17) << "sim cache MiB"
               << "\n";
     for (const auto& c : f["checkpoints"]) {
@@ -919,6 +919,8 @@ int main(int argc, char** argv) {
                 << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0)
                 << std::setw(17) << Fixed(c["simulator_cache_mib"], 0) << "\n";
     }
+    std::cout << "(CPU ms/frame of the tenth; Push and writer: those threads' CPU; index*: the "
+                 "writer's wall ms in VRTs and manifest.json)\n";
     std::cout << "total: " << Fixed(f["frames_per_s"], 1) << " frames/s wall (foreground "
               << Fixed(f["foreground_frames_per_s"], 1) << ", finish " << Fixed(f["finish_s"], 1)
               << " s), pipeline CPU " << Fixed(f["pipeline_cpu_ms_per_frame"], 1)
