@@ -153,6 +153,42 @@ ExportSummary ExportMosaic(const std::string& store_path, const std::string& out
                      "GDAL cannot open the store's index: " + errors.message(),
                      "check the store folder");
   }
+  GDALDatasetH whole = nullptr;  // mosaic.vrt when `source` is a window of it.
+  // mosaic.vrt's extent grows in steps (store::VrtBounds): the export covers the painted tiles
+  // only, a window of it (whole pixels: both extents are whole tiles of the same grid).
+  {
+    double gt[6];
+    GDALGetGeoTransform(source, gt);
+    const store::TileBounds painted = manifest.levels[0].bounds();
+    const int64_t t = manifest.tile_size;
+    double painted_gt[6];
+    store::TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, 0,
+                            {painted.row0, painted.col0}, painted_gt);
+    const int64_t x = std::llround((painted_gt[0] - gt[0]) / gt[1]);
+    const int64_t y = std::llround((painted_gt[3] - gt[3]) / gt[5]);
+    const int64_t w = (painted.col1 - painted.col0) * t, h = (painted.row1 - painted.row0) * t;
+    if (x != 0 || y != 0 || w != GDALGetRasterXSize(source) || h != GDALGetRasterYSize(source)) {
+      CPLStringList window_args;
+      window_args.AddString("-of");
+      window_args.AddString("VRT");
+      window_args.AddString("-srcwin");
+      for (const int64_t v : {x, y, w, h}) window_args.AddString(std::to_string(v).c_str());
+      GDALTranslateOptions* window_options = GDALTranslateOptionsNew(window_args.List(), nullptr);
+      int window_error = FALSE;
+      GDALDatasetH window =
+          window_options ? GDALTranslate("", source, window_options, &window_error) : nullptr;
+      GDALTranslateOptionsFree(window_options);
+      if (window == nullptr) {
+        GDALClose(source);
+        throw InputError(
+            {(root / "mosaic.vrt").string(), 0, 0, ""},
+            "GDAL cannot take the painted window of the store's index: " + errors.message(),
+            "check the store folder (manifest.json and mosaic.vrt of one store)");
+      }
+      whole = source;  // Closed after the window, which reads through it.
+      source = window;
+    }
+  }
   // 16/32-bit GeoPackage rasters have no alpha: coverage becomes nodata there.
   const bool nodata_instead_of_alpha =
       options.format == "GPKG" && manifest.type != PixelType::kByte;
@@ -176,6 +212,7 @@ ExportSummary ExportMosaic(const std::string& store_path, const std::string& out
   GDALWarpAppOptionsFree(warp_options);
   if (warped == nullptr) {
     GDALClose(source);
+    if (whole != nullptr) GDALClose(whole);
     throw InputError({summary.target_srs, 0, 0, "--t_srs"},
                      "GDAL cannot reproject the mosaic: " + errors.message(),
                      "check --t_srs, -r and -tr");
@@ -228,6 +265,7 @@ ExportSummary ExportMosaic(const std::string& store_path, const std::string& out
   }
   GDALClose(warped);
   GDALClose(source);
+  if (whole != nullptr) GDALClose(whole);
   std::error_code error;
   if (!failure.empty()) {
     fs::remove(temp, error);

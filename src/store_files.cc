@@ -884,15 +884,19 @@ namespace {
 // GDAL's block size for a VRT band that names none: what a block VRT reports when opened.
 constexpr int64_t kVrtDefaultBlockSize = 128;
 
-// The head of a VRT of `width` x `height` pixels with geotransform `gt`.
-void VrtHead(const Manifest& manifest, int level, const double gt[6], int64_t width, int64_t height,
-             std::ostringstream* xml) {
+// The head of a VRT of `width` x `height` pixels with geotransform `gt`; the generation only in
+// mosaic.vrt (block and overview VRTs are rewritten only when they change).
+void VrtHead(const Manifest& manifest, int level, bool with_generation, const double gt[6],
+             int64_t width, int64_t height, std::ostringstream* xml) {
   *xml << "<VRTDataset rasterXSize=\"" << width << "\" rasterYSize=\"" << height << "\">\n"
        << "  <SRS dataAxisToSRSAxisMapping=\"1,2\">" << XmlEscape(manifest.georef.crs_wkt)
        << "</SRS>\n"
        << "  <GeoTransform>" << FormatGeoTransform(gt) << "</GeoTransform>\n"
-       << "  <Metadata>\n    <MDI key=\"IRMOSAIC_GENERATION\">" << manifest.generation
-       << "</MDI>\n    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
+       << "  <Metadata>\n";
+  if (with_generation) {
+    *xml << "    <MDI key=\"IRMOSAIC_GENERATION\">" << manifest.generation << "</MDI>\n";
+  }
+  *xml << "    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
 }
 
 // A source of `size` x `size` pixels (file `path`, block size `block`) whose top-left pixel
@@ -924,6 +928,20 @@ void VrtBandHead(int band, const std::string& type, std::ostringstream* xml) {
 
 }  // namespace
 
+TileBounds VrtBounds(const TileBounds& painted) {
+  // floor(v / step) * step and its ceiling, for signed v and step a power of two.
+  auto grow = [](int64_t lo, int64_t hi, int64_t* out_lo, int64_t* out_hi) {
+    int64_t step = 1;
+    while (2 * step * 16 <= hi - lo) step *= 2;
+    *out_lo = lo >= 0 ? lo / step * step : -((-lo + step - 1) / step) * step;
+    *out_hi = hi >= 0 ? (hi + step - 1) / step * step : -(-hi / step) * step;
+  };
+  TileBounds b;
+  grow(painted.row0, painted.row1, &b.row0, &b.row1);
+  grow(painted.col0, painted.col1, &b.col0, &b.col1);
+  return b;
+}
+
 std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex& block) {
   const int64_t t = manifest.tile_size;
   const int64_t side = kVrtBlockTiles * t;
@@ -932,7 +950,7 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
   double gt[6];
   TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, level, first, gt);
   std::ostringstream xml;
-  VrtHead(manifest, level, gt, side, side, &xml);
+  VrtHead(manifest, level, false, gt, side, side, &xml);
   const auto& blocks = manifest.levels[level].blocks();
   const auto found = blocks.find(block);
   const BlockRows rows = found == blocks.end() ? BlockRows{} : found->second;
@@ -969,7 +987,7 @@ std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds&
   gt[1] *= static_cast<double>(scale);
   gt[5] *= static_cast<double>(scale);
   std::ostringstream xml;
-  VrtHead(manifest, level, gt, width, height, &xml);
+  VrtHead(manifest, level, level == 0, gt, width, height, &xml);
   const auto& blocks = manifest.levels[level].blocks();
   for (int band = 1; band <= 2; ++band) {
     VrtBandHead(band, type, &xml);

@@ -153,8 +153,15 @@ Manifest ReadManifest(const std::filesystem::path& path);
 std::string BlockVrtName(const BlockIndex& block);
 // One block's VRT at `level`: the block's extent, a source per tile of the level in it.
 std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex& block);
+// The extent of mosaic.vrt and its overview VRTs for tiles painted over `painted`: grown on
+// each axis to whole multiples of a step, a power of two no larger than a sixteenth of that
+// axis's span (1 tile below 32 tiles), so that a growing mosaic changes the VRTs' extent
+// ~16 times per doubling of its span instead of at nearly every publish; the padding is
+// transparent (alpha 0) and at most a sixteenth of the span on each side.
+TileBounds VrtBounds(const TileBounds& painted);
 // mosaic.vrt (level 0) and the per-level overview VRTs of a generation, as XML text: one
-// source per block VRT of the level.
+// source per block VRT of the level. Only mosaic.vrt carries the generation (metadata item
+// IRMOSAIC_GENERATION): an overview VRT is rewritten only when its blocks or extent change.
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
                           const std::vector<std::string>& overview_paths);
 // The QGIS layer definition: the mosaic with a thermal ramp and auto-refresh, and the frames.

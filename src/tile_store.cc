@@ -472,6 +472,12 @@ struct TileStore::Impl {
   // Writer thread only: tiles per block as each block VRT was last written (per level), and
   // the index figures of the publishes so far.
   std::vector<std::map<store::BlockIndex, int64_t>> block_tile_counts;
+  // Writer thread only: each overview VRT as this process last wrote it (per level).
+  struct LevelVrtState {
+    std::string relative;
+    std::vector<store::BlockIndex> blocks;
+  };
+  std::vector<LevelVrtState> level_vrts_written;
   int64_t index_bytes = 0;
   double index_ms = 0.0;
   void WriteQlr(const store::Manifest& m) {
@@ -596,7 +602,9 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   m.generation = generation;
   m.published_utc = store::UtcNow();
   m.overview_vrts.clear();
-  const store::TileBounds bounds = m.levels[0].bounds();
+  // Grown in steps (store::VrtBounds) so that the overview VRTs, named by it, stay the same
+  // file over many publishes; export crops to the painted tiles.
+  const store::TileBounds bounds = store::VrtBounds(m.levels[0].bounds());
   // Block VRTs first (the level VRTs name them): only those that gained tiles since this
   // process last wrote them; after an open, each once (a store of an older layout has none).
   block_tile_counts.resize(m.levels.size());
@@ -621,10 +629,25 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
                                  std::to_string(bounds.row0) + "_c" + std::to_string(bounds.col0) +
                                  "_" + std::to_string(bounds.row1 - bounds.row0) + "x" +
                                  std::to_string(bounds.col1 - bounds.col0) + ".vrt";
+    m.overview_vrts.push_back(relative);
+    // Its text depends on the extent (in its name) and the level's blocks only: rewritten when
+    // these changed since this process last wrote it, else only its time is renewed (stale
+    // overview VRTs go an hour after they were last current: CleanStaleFiles).
+    std::vector<store::BlockIndex> blocks;
+    blocks.reserve(m.levels[level].blocks().size());
+    for (const auto& entry : m.levels[level].blocks()) blocks.push_back(entry.first);
+    level_vrts_written.resize(m.levels.size());
+    LevelVrtState& last = level_vrts_written[level];
+    if (last.relative == relative && last.blocks == blocks) {
+      std::error_code error;
+      fs::last_write_time(root / relative, fs::file_time_type::clock::now(), error);
+      if (!error) continue;  // Else (the file is gone) it is written again.
+    }
     const std::string xml = store::BuildLevelVrt(m, level, bounds, {});
     store::WriteFileAtomic(root / relative, xml, options.durable);
     index_bytes += static_cast<int64_t>(xml.size());
-    m.overview_vrts.push_back(relative);
+    last.relative = relative;
+    last.blocks = std::move(blocks);
   }
   const std::string vrt = store::BuildLevelVrt(m, 0, bounds, m.overview_vrts);
   store::WriteFileAtomic(root / "mosaic.vrt", vrt, options.durable);

@@ -30,15 +30,17 @@ const std::vector<Marker> kMarkers = {
     {{-700, -300}, 1111}, {{250, 250}, 2222}, {{900, -650}, 3333}, {{-20, 800}, 4444}};
 constexpr int kMarkerSize = 24;
 
-fs::path MakeStore(const std::string& name) {
+fs::path MakeStore(const std::string& name, int tile_size = 512,
+                   const std::vector<Marker>& markers = kMarkers) {
   const fs::path dir = fs::temp_directory_path() /
                        ("irmosaic_export_test_" + std::to_string(::getpid()) + "_" + name);
   fs::remove_all(dir);
   fs::create_directories(dir);
   TileStoreOptions options;
   options.path = (dir / "s.irmosaic").string();
+  options.tile_size = tile_size;
   auto store = TileStore::Open(options, {kLat0, kLon0, kGsd, LocalFrame(kLat0, kLon0).CrsWkt()});
-  for (const Marker& m : kMarkers) {
+  for (const Marker& m : markers) {
     store->Paint(cv::Mat(kMarkerSize, kMarkerSize, CV_16U, cv::Scalar(m.value)),
                  cv::Mat(kMarkerSize, kMarkerSize, CV_32F, cv::Scalar(1.0f)), m.top_left);
   }
@@ -54,7 +56,8 @@ double GeodesicMetres(const Eigen::Vector2d& lat_lon_a, const Eigen::Vector2d& l
 }
 
 // Checks an export: CRS, marker positions on the ground (through lat/lon), exact values.
-void CheckExport(const fs::path& path, int expected_epsg, int expected_bands) {
+void CheckExport(const fs::path& path, int expected_epsg, int expected_bands,
+                 const std::vector<Marker>& markers = kMarkers) {
   GDALDatasetH ds = GDALOpen(path.c_str(), GA_ReadOnly);
   ASSERT_NE(ds, nullptr) << path;
   OGRSpatialReference srs, expected;
@@ -92,7 +95,7 @@ void CheckExport(const fs::path& path, int expected_epsg, int expected_bands) {
   const PlaneToGeographic plane_to_geo{LocalFrame(kLat0, kLon0)};
   const MosaicGrid grid{kGsd};
   int covered_pixels = 0;
-  for (const Marker& m : kMarkers) {
+  for (const Marker& m : markers) {
     const cv::Mat hit = data == m.value;
     const cv::Moments moments = cv::moments(hit, true);
     // Nearest-neighbour resampling keeps the area within a pixel row/column per side.
@@ -142,6 +145,32 @@ TEST(MosaicExportTest, DefaultCogInUtmPlacesContentWithinOneGsdWithExactValues) 
   EXPECT_STREQ(GDALGetMetadataItem(ds, "LAYOUT", "IMAGE_STRUCTURE"), "COG");
   EXPECT_STREQ(GDALGetMetadataItem(ds, "COMPRESSION", "IMAGE_STRUCTURE"), "ZSTD");
   GDALClose(ds);
+}
+
+// mosaic.vrt's extent grows in steps (a sixteenth of the span, docs/store.md): here 38 tiles
+// of 64 px painted across, 40 in the VRT. The export covers the painted tiles only.
+TEST(MosaicExportTest, ExportCoversThePaintedTilesNotThePaddedVrtExtent) {
+  const std::vector<Marker> wide = {
+      {{-1300, -300}, 1111}, {{250, 250}, 2222}, {{900, -650}, 3333}, {{1030, 800}, 4444}};
+  constexpr int kTile = 64;
+  const fs::path dir = MakeStore("padded", kTile, wide);
+  GDALAllRegister();
+  GDALDatasetH vrt = GDALOpen((dir / "s.irmosaic/mosaic.vrt").c_str(), GA_ReadOnly);
+  ASSERT_NE(vrt, nullptr);
+  EXPECT_EQ(GDALGetRasterXSize(vrt), 40 * kTile);  // Tile columns -22 .. 17 (painted -21 .. 16).
+  EXPECT_EQ(GDALGetRasterYSize(vrt), 24 * kTile);  // Tile rows -11 .. 12: exact below 32.
+  GDALClose(vrt);
+  ExportOptions options;
+  options.format = "GTiff";
+  ExportMosaic((dir / "s.irmosaic").string(), (dir / "out.tif").string(), options);
+  CheckExport(dir / "out.tif", 32632, 2, wide);
+  GDALDatasetH out = GDALOpen((dir / "out.tif").c_str(), GA_ReadOnly);
+  ASSERT_NE(out, nullptr);
+  // UTM against the tangent plane: a scale within 1e-3 and a rotation of ~0.4 degrees here,
+  // which widens the bounding box by sin(0.4 deg) x the height (~11 px): well under a tile.
+  EXPECT_NEAR(GDALGetRasterXSize(out), 38 * kTile, 16);
+  EXPECT_NEAR(GDALGetRasterYSize(out), 24 * kTile, 24);
+  GDALClose(out);
 }
 
 TEST(MosaicExportTest, GtiffAndGpkgWithOptionsInAnotherCrs) {

@@ -221,6 +221,125 @@ TEST(TileStoreTest, AReaderOpenedEarlyStillReadsOverviewsAfterTheMosaicGrew) {
   store->Close();
 }
 
+// mosaic.vrt's extent (and so its overview VRTs' names) grows in steps of a power of two no
+// larger than a sixteenth of the span, per axis: it holds the painted tiles, pads each side by at
+// most a sixteenth of the span (none below 32 tiles), and a mosaic growing tile by tile to 4096
+// tiles changes it a few hundred times, not 4096.
+TEST(TileStoreTest, VrtExtentGrowsInStepsOfASixteenthOfTheSpan) {
+  int changes = 0;
+  store::TileBounds last{0, 0, 0, 0};
+  for (int64_t n = 1; n <= 4096; ++n) {
+    // Rows fixed at 5 tiles; columns grow both ways, a third of the growth westward.
+    const store::TileBounds painted{-3, 2, -(n / 3), n - n / 3};
+    const store::TileBounds b = store::VrtBounds(painted);
+    EXPECT_EQ(b.row0, painted.row0);  // A span under 32 tiles: exact.
+    EXPECT_EQ(b.row1, painted.row1);
+    const int64_t span = painted.col1 - painted.col0;
+    ASSERT_LE(b.col0, painted.col0) << n;
+    ASSERT_GE(b.col1, painted.col1) << n;
+    ASSERT_LE(painted.col0 - b.col0, span / 16) << n;
+    ASSERT_LE(b.col1 - painted.col1, span / 16) << n;
+    if (span < 32) {
+      ASSERT_EQ(b.col0, painted.col0) << n;
+      ASSERT_EQ(b.col1, painted.col1) << n;
+    }
+    if (b.row0 != last.row0 || b.row1 != last.row1 || b.col0 != last.col0 || b.col1 != last.col1) {
+      ++changes;
+    }
+    last = b;
+  }
+  // Exact bounds change at every step; ~16 per doubling and side here (2 sides, 7 doublings
+  // past 32 tiles, plus the first 31 steps).
+  EXPECT_LT(changes, 31 + 2 * 16 * 8);
+}
+
+// The overview VRTs are rewritten only when their extent or their level's blocks change; a
+// publish that adds tiles to existing blocks rewrites mosaic.vrt (its generation) and the
+// blocks' own VRTs only. GDAL reads the new tiles through the unchanged overview VRTs, and the
+// padded extent keeps every tile at its ground position.
+TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
+  const fs::path dir = FreshDir("overview_rewrites") / "s.irmosaic";
+  constexpr int kTile = 64;
+  TileStoreOptions options = Options(dir, kTile);
+  options.pixel_type = PixelType::kByte;
+  options.overview_interval_s = 0.0;  // Overviews within every publish.
+  auto store = TileStore::Open(options, Georef());
+  const auto at = [](int row, int col) { return cv::Point(col * kTile + 8, row * kTile + 8); };
+  // Tiles (0, 0) and (40, 40): 41 x 41 tiles, padded to 42 x 42 (steps of 2 tiles).
+  PaintSquare(store.get(), at(0, 0), 16, 10);
+  PaintSquare(store.get(), at(40, 40), 16, 20);
+  store->WaitPublished(store->RequestPublish());
+  const auto names = [&] {
+    return nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["overview_vrts"]
+        .get<std::vector<std::string>>();
+  };
+  const auto inode = [&](const std::string& relative) {
+    struct stat st {};
+    return ::stat((dir / relative).c_str(), &st) == 0 ? st.st_ino : ino_t{0};
+  };
+  const std::vector<std::string> first = names();
+  ASSERT_GE(first.size(), 2u);
+  std::vector<ino_t> inodes;
+  for (const std::string& vrt : first) inodes.push_back(inode(vrt));
+  const ino_t mosaic_inode = inode("mosaic.vrt");
+
+  GdalErrorCount errors;
+  Raster r = ReadThroughGdal(dir / "mosaic.vrt");
+  ASSERT_FALSE(r.data.empty()) << errors.last;
+  EXPECT_EQ(r.data.cols, 42 * kTile);
+  EXPECT_EQ(r.data.rows, 42 * kTile);
+  // Pixel (col, row) of level 0 is centred at plane (col, -row) * gsd: the VRT's first pixel.
+  EXPECT_NEAR(r.gt[0], -0.5 * kGsd, 1e-9);
+  EXPECT_NEAR(r.gt[3], 0.5 * kGsd, 1e-9);
+  EXPECT_EQ(r.data.at<float>(40 * kTile + 8, 40 * kTile + 8), 20.0f);
+  EXPECT_EQ(cv::countNonZero(r.alpha), 2 * 16 * 16);
+
+  // Tile (40, 39): its blocks exist at every level (level 0: block (2, 2); level 1: (1, 1); ...).
+  PaintSquare(store.get(), at(40, 39), 16, 30);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(names(), first);
+  for (size_t l = 0; l < first.size(); ++l) {
+    EXPECT_EQ(inode(first[l]), inodes[l]) << "level " << l + 1 << " was rewritten";
+  }
+  EXPECT_NE(inode("mosaic.vrt"), mosaic_inode);
+  r = ReadThroughGdal(dir / "mosaic.vrt", 1);
+  ASSERT_FALSE(r.data.empty()) << errors.last;
+  EXPECT_EQ(r.generation, 2);
+  EXPECT_EQ(cv::countNonZero(r.data == 30), 8 * 8);  // Through the unchanged level-1 VRT.
+
+  // Tile (0, 40): a new block at level 0 ((0, 2)) and level 1 ((0, 1)), same extent: the level-1
+  // VRT is rewritten under its name.
+  PaintSquare(store.get(), at(0, 40), 16, 40);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(names(), first);
+  EXPECT_NE(inode(first[0]), inodes[0]);
+  r = ReadThroughGdal(dir / "mosaic.vrt", 1);
+  ASSERT_FALSE(r.data.empty()) << errors.last;
+  EXPECT_EQ(cv::countNonZero(r.data == 40), 8 * 8);
+  EXPECT_EQ(cv::countNonZero(r.data == 10), 8 * 8);
+
+  // Tile (0, 41): the painted extent grows (42 columns) within the padded one: nothing renamed.
+  // Tile (0, 42) then widens it to 44 columns: new names, the old files kept for older readers.
+  PaintSquare(store.get(), at(0, 41), 16, 50);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(names(), first);
+  PaintSquare(store.get(), at(0, 42), 16, 60);
+  store->WaitPublished(store->RequestPublish());
+  const std::vector<std::string> wider = names();
+  ASSERT_EQ(wider.size(), first.size());
+  EXPECT_NE(wider[0], first[0]);
+  for (const std::string& vrt : first) EXPECT_TRUE(fs::exists(dir / vrt)) << vrt;
+  r = ReadThroughGdal(dir / "mosaic.vrt");
+  ASSERT_FALSE(r.data.empty()) << errors.last;
+  EXPECT_EQ(r.data.cols, 44 * kTile);
+  for (const int value : {10, 20, 30, 40, 50, 60}) {
+    EXPECT_EQ(cv::countNonZero(r.data == value), 16 * 16) << value;
+  }
+  EXPECT_EQ(r.data.at<float>(8, 42 * kTile + 8), 60.0f);
+  EXPECT_EQ(errors.count, 0) << errors.last;
+  store->Close();
+}
+
 // The index a publish writes grows with what changed, not with the store (docs/store.md,
 // "mosaic.vrt"): the level VRTs name blocks of 16 x 16 tiles, each block its own VRT, and only
 // blocks that gained tiles are rewritten. A flat VRT (one source per tile) would rewrite ~1 KB
