@@ -8,6 +8,7 @@ resumes it with more frames. Exits 0 when every check passes, 1 otherwise (each 
 """
 import os
 import random
+import shutil
 import signal
 import subprocess
 import time
@@ -149,6 +150,10 @@ def main():
           "the resumed store loads")
 
     project.clear()
+    if failures:
+        print("kept for a look: " + work)
+    else:
+        shutil.rmtree(work, ignore_errors=True)
     print("%d failure(s)" % len(failures))
     sys.stdout.flush()
     # QGIS 3.22 can crash while tearing down under offscreen Qt; the verdict is already known.
