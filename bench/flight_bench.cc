@@ -434,12 +434,46 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     run.origin_lon_deg = s.origin_lon_deg;
     run.gsd_m = s.gsd_m;
     int64_t oldest_neighbour = 0;  // Frames between a frame and its oldest neighbour.
+    // What the worst placements were (a far-off frame in a long run is found by its index).
+    struct Facts {
+      bool pos_only = false;
+      size_t neighbours = 0;
+      int inliers = 0;
+      int optimized_times = 0;
+      std::string note;
+    };
+    std::map<int64_t, Facts> facts;
     for (const irmosaic::FramePlacement& p : mosaicker.Placements()) {
       run.frames.push_back({static_cast<int>(p.index), p.time_s, p.mosaic_from_image});
       for (int64_t n : p.neighbours) oldest_neighbour = std::max(oldest_neighbour, p.index - n);
+      facts[p.index] = {p.pos_only, p.neighbours.size(), p.inliers, p.optimized_times, p.note};
     }
     const irmosaic::PlacementScore score =
         irmosaic::Evaluator(truth).ScorePlacements(run, "flight_bench");
+    std::vector<irmosaic::FrameScore> worst = score.frames;
+    const size_t worst_n = std::min<size_t>(5, worst.size());
+    std::partial_sort(worst.begin(), worst.begin() + static_cast<std::ptrdiff_t>(worst_n),
+                      worst.end(),
+                      [](const irmosaic::FrameScore& a, const irmosaic::FrameScore& b) {
+                        return a.rmse_px > b.rmse_px;
+                      });
+    worst.resize(worst_n);
+    int64_t over_5px = 0, over_20px = 0;
+    for (const irmosaic::FrameScore& f : score.frames) {
+      over_5px += f.rmse_px > 5.0;
+      over_20px += f.rmse_px > 20.0;
+    }
+    nlohmann::json worst_json = nlohmann::json::array();
+    for (const irmosaic::FrameScore& f : worst) {
+      const Facts& x = facts[f.index];
+      worst_json.push_back({{"index", f.index},
+                            {"rmse_px", f.rmse_px},
+                            {"pos_only", x.pos_only},
+                            {"neighbours", x.neighbours},
+                            {"inliers", x.inliers},
+                            {"optimized_times", x.optimized_times},
+                            {"note", x.note}});
+    }
     int64_t store_bytes = 0;
     for (const auto& e : std::filesystem::recursive_directory_iterator(config.store)) {
       if (e.is_regular_file()) store_bytes += static_cast<int64_t>(e.file_size());
@@ -503,6 +537,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"placement_mean_px", score.rmse_px.mean},
             {"placement_p95_px", score.rmse_px.p95},
             {"placement_max_px", score.rmse_px.max},
+            {"placement_frames_over_5px", over_5px},
+            {"placement_frames_over_20px", over_20px},
+            {"placement_worst_frames", worst_json},
             {"publish_interval_s", options.publish_interval_s},
             {"overview_interval_s", options.overview_interval_s},
             {"tile_size", options.tile_size},
@@ -948,9 +985,18 @@ int main(int argc, char** argv) {
               << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
               << " px (RMS, mean over solves)\nplacement vs truth mean "
               << Fixed(f["placement_mean_px"], 3) << " px, p95 " << Fixed(f["placement_p95_px"], 3)
-              << ", max " << Fixed(f["placement_max_px"], 3) << "\nfusion: images held at the end "
-              << f["held_images"].get<int64_t>() << " (" << Fixed(f["held_image_mib"], 0)
-              << " MiB in memory), " << f["spilled_images"].get<int64_t>() << " on disk (file "
+              << ", max " << Fixed(f["placement_max_px"], 3) << ", frames over 5 px "
+              << f["placement_frames_over_5px"].get<int64_t>() << ", over 20 px "
+              << f["placement_frames_over_20px"].get<int64_t>() << "; worst:";
+    for (const auto& w : f["placement_worst_frames"]) {
+      std::cout << " " << w["index"].get<int64_t>() << " (" << Fixed(w["rmse_px"], 1) << " px"
+                << (w["pos_only"].get<bool>() ? ", POS only" : "") << ", "
+                << w["neighbours"].get<int64_t>() << " neighbours, " << w["inliers"].get<int>()
+                << " inliers)";
+    }
+    std::cout << "\nfusion: images held at the end " << f["held_images"].get<int64_t>() << " ("
+              << Fixed(f["held_image_mib"], 0) << " MiB in memory), "
+              << f["spilled_images"].get<int64_t>() << " on disk (file "
               << Fixed(f["spill_file_mib"], 0) << " MiB, " << f["spill_reads"].get<int64_t>()
               << " read back"
               << (f["spill_error"].get<std::string>().empty()
