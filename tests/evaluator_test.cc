@@ -2,11 +2,15 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
 
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
@@ -197,10 +201,29 @@ TEST(EvaluatorCli, SynthThenEvalOnTheBundledSample) {
   const std::string eval = cli + " eval --truth " + (dir / "truth.json").string() + " " +
                            (dir / "truth.json").string() + " " + (dir / "pos_only.json").string() +
                            " --json " + (dir / "eval.json").string() + " --plot " +
-                           (dir / "eval.png").string() + " > /dev/null";
+                           (dir / "eval.png").string() + " > " + (dir / "eval.txt").string();
   ASSERT_EQ(std::system(eval.c_str()), 0) << eval;
   std::ifstream in(dir / "eval.json");
   const nlohmann::json scores = nlohmann::json::parse(in);
+  // The printed worst frames of the POS-only run: its highest per-frame RMSE first.
+  int worst_index = -1;
+  double worst_rmse = -1.0;
+  for (const auto& f : scores["runs"][1]["frames"]) {
+    if (f["rmse_px"].get<double>() > worst_rmse) {
+      worst_rmse = f["rmse_px"].get<double>();
+      worst_index = f["index"].get<int>();
+    }
+  }
+  std::ifstream text(dir / "eval.txt");
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(text, line);) lines.push_back(line);
+  ASSERT_EQ(lines.size(), 4u);  // Per run: the scores, then the worst frames.
+  char expected[64];
+  std::snprintf(expected, sizeof(expected), "  worst frames (index: RMSE px): %d: %.3f,",
+                worst_index, worst_rmse);
+  EXPECT_EQ(lines[3].rfind(expected, 0), 0u) << lines[3] << " / expected " << expected;
+  EXPECT_EQ(std::count(lines[3].begin(), lines[3].end(), ','), 4);  // Five frames.
+  EXPECT_EQ(lines[1].rfind("  worst frames (index: RMSE px): 0: 0.000,", 0), 0u) << lines[1];
   EXPECT_EQ(scores["runs"][0]["rmse_px"]["max"].get<double>(), 0.0);
   // POS errors of 2 m and 0.3 degree at 600 m: the POS-only placement is metres off.
   EXPECT_GT(scores["runs"][1]["rmse_m"]["median"].get<double>(), 1.0);
