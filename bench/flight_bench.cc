@@ -7,7 +7,7 @@
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
 //                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
 //                [--ground-cache-mb N]
-//                [--lsm-level N] [--seed N] [--bit-depth 8|16]
+//                [--lsm-level N] [--seed N] [--first N] [--bit-depth 8|16]
 //                [--malloc-info DIR] [--exit-before-finish]
 //
 // The tuning options override the MosaickerOptions defaults, so a trade-off (output cost
@@ -138,6 +138,10 @@ struct Tuning {
   // make a store of Byte tiles, a third of the disk of UInt16 here (234 against ~750 KiB per
   // frame): an hour of this flight (90,000 frames) takes ~65 GB of store at 16 bits.
   int bit_depth = 0;
+  // The flight's first frame pushed: frames first .. first + frames - 1 of the same simulated
+  // flight (the simulator renders any frame on its own), so a frame deep in a long flight can be
+  // looked at again in minutes. 0: from the start.
+  int first_frame = 0;
   // glibc's mmap threshold (mallopt M_MMAP_THRESHOLD) for the Mosaicker's processes; 0 leaves
   // glibc's default (a threshold that rises as large blocks are freed). Measured in session 8,
   // not adopted: docs/benchmarks.md. Takes effect with --heap-tuning 0 only: the Mosaicker's
@@ -158,7 +162,7 @@ Tuning g_tuning;
 irmosaic::SynthOptions FlightOptions(int frames) {
   irmosaic::SynthOptions options =
       irmosaic::SynthOptions::LoadJson(irmosaic::testing::SamplePath("sample_flight/flight.json"));
-  options.frame_count = frames;
+  options.frame_count = g_tuning.first_frame + frames;
   if (g_tuning.ground_cache_mb > 0) options.ground_cache_mb = g_tuning.ground_cache_mb;
   if (g_tuning.seed > 0) options.seed = g_tuning.seed;
   if (g_tuning.bit_depth > 0) options.sensor.bit_depth = g_tuning.bit_depth;
@@ -169,8 +173,9 @@ irmosaic::SynthOptions FlightOptions(int frames) {
 // rate, frame i is released no earlier than start + i / rate (its arrival from the sensor).
 class Producer {
  public:
-  Producer(const irmosaic::FlightSimulator& sim, int frames, double rate_hz, size_t depth)
-      : sim_(sim), frames_(frames), rate_hz_(rate_hz), depth_(depth) {
+  Producer(const irmosaic::FlightSimulator& sim, int first, int frames, double rate_hz,
+           size_t depth)
+      : sim_(sim), first_(first), frames_(frames), rate_hz_(rate_hz), depth_(depth) {
     start_ = Clock::now();
     thread_ = std::thread([this] { Loop(); });
   }
@@ -205,7 +210,7 @@ class Producer {
   void Loop() {
     pthread_setname_np(pthread_self(), "sim-render");
     for (int i = 0; i < frames_; ++i) {
-      SimFrame frame = sim_.Render(i);
+      SimFrame frame = sim_.Render(first_ + i);
       Clock::time_point arrival = Clock::now();
       if (rate_hz_ > 0) {
         arrival = start_ + std::chrono::duration_cast<Clock::duration>(
@@ -228,6 +233,7 @@ class Producer {
   }
 
   const irmosaic::FlightSimulator& sim_;
+  const int first_;
   const int frames_;
   const double rate_hz_;
   const size_t depth_;
@@ -329,7 +335,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   Clock::time_point start;
   {
     Mosaicker mosaicker(options, sim.camera(), sim.MeasuredPos());
-    Producer producer(sim, config.frames, config.rate_hz, 4);
+    Producer producer(sim, g_tuning.first_frame, config.frames, config.rate_hz, 4);
     start = producer.start();
     SimFrame frame;
     Clock::time_point arrival;
@@ -703,7 +709,9 @@ nlohmann::json RunChild(const std::string& self, const std::string& kind, int fr
                                    "--seed",
                                    std::to_string(g_tuning.seed),
                                    "--bit-depth",
-                                   std::to_string(g_tuning.bit_depth)};
+                                   std::to_string(g_tuning.bit_depth),
+                                   "--first",
+                                   std::to_string(g_tuning.first_frame)};
   std::vector<char*> argv;
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
@@ -859,6 +867,12 @@ int main(int argc, char** argv) {
       g_tuning.cv_threads = std::stoi(value());
     } else if (a == "--seed") {
       g_tuning.seed = std::stoull(value());
+    } else if (a == "--first") {
+      g_tuning.first_frame = std::stoi(value());
+      if (g_tuning.first_frame < 0) {
+        std::cerr << "flight_bench: --first must be 0 or more\n";
+        return 2;
+      }
     } else if (a == "--bit-depth") {
       g_tuning.bit_depth = std::stoi(value());
       if (g_tuning.bit_depth != 0 && g_tuning.bit_depth != 8 && g_tuning.bit_depth != 16) {
@@ -880,7 +894,8 @@ int main(int argc, char** argv) {
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "
-                   "[--cv-threads N] [--seed N] [--bit-depth 8|16] [--malloc-info DIR] "
+                   "[--cv-threads N] [--seed N] [--first N] [--bit-depth 8|16] "
+                   "[--malloc-info DIR] "
                    "[--exit-before-finish]\n";
       return 2;
     }
