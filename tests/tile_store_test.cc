@@ -1499,7 +1499,15 @@ TEST(TileStoreTest, KillNineMidPublishLeavesALoadableStoreThatResumes) {
       }
       _exit(0);
     }
-    // Let it run into its publishes, then kill it without warning.
+    // Let it run into its publishes, then kill it without warning. The first round waits for
+    // the first publish (up to 5 minutes) before its random delay: on a loaded machine under
+    // ASan the store had not published within 150-550 ms (CI of 5a94093).
+    if (round == 0) {
+      const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(5);
+      while (!fs::exists(dir / "manifest.json") && std::chrono::steady_clock::now() < deadline) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      }
+    }
     std::this_thread::sleep_for(std::chrono::milliseconds(150 + random() % 400));
     kill(writer, SIGKILL);
     int status = 0;
