@@ -124,6 +124,9 @@ struct Tuning {
   int writer_nice = -1;
   int lsm_level = -1;               // MosaickerOptions::registration.fine.lsm_level.
   int keypoints_at_lsm_level = -1;  // ... .fine.keypoints_at_lsm_level (0 / 1).
+  double max_pair_sigma_px = -1.0;  // ... .fine.max_joint_sigma_px (the pair accept criterion).
+  double max_coarse_pair_sigma_px = -1.0;  // ... .fine.max_coarse_joint_sigma_px.
+  double wide_radius_px = -1.0;            // MosaickerOptions::wide_search_radius_px (0: none).
   int heap_trim_interval_frames = -1;
   int tune_heap = -1;  // MosaickerOptions::tune_heap (0 / 1; -1: the library's default).
   int max_cached_tiles = -1;
@@ -294,6 +297,13 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.registration_threads = g_tuning.registration_threads;
   }
   if (g_tuning.lsm_level >= 0) options.registration.fine.lsm_level = g_tuning.lsm_level;
+  if (g_tuning.max_pair_sigma_px > 0.0) {
+    options.registration.fine.max_joint_sigma_px = g_tuning.max_pair_sigma_px;
+  }
+  if (g_tuning.max_coarse_pair_sigma_px > 0.0) {
+    options.registration.fine.max_coarse_joint_sigma_px = g_tuning.max_coarse_pair_sigma_px;
+  }
+  if (g_tuning.wide_radius_px >= 0.0) options.wide_search_radius_px = g_tuning.wide_radius_px;
   if (g_tuning.keypoints_at_lsm_level >= 0) {
     options.registration.fine.keypoints_at_lsm_level = g_tuning.keypoints_at_lsm_level != 0;
   }
@@ -842,6 +852,12 @@ int main(int argc, char** argv) {
       g_tuning.writer_nice = std::stoi(value());
     } else if (a == "--lsm-level") {
       g_tuning.lsm_level = std::stoi(value());
+    } else if (a == "--max-pair-sigma") {
+      g_tuning.max_pair_sigma_px = std::stod(value());
+    } else if (a == "--max-coarse-pair-sigma") {
+      g_tuning.max_coarse_pair_sigma_px = std::stod(value());
+    } else if (a == "--wide-radius") {
+      g_tuning.wide_radius_px = std::stod(value());
     } else if (a == "--keypoints-at-level") {
       g_tuning.keypoints_at_lsm_level = std::stoi(value());
     } else if (a == "--heap-tuning") {
@@ -887,6 +903,8 @@ int main(int argc, char** argv) {
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
                    "[--registration-threads N] [--lsm-level N] [--keypoints-at-level 0|1] "
+                   "[--max-pair-sigma PX] "
+                   "[--max-coarse-pair-sigma PX] [--wide-radius PX] "
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--overview-interval S] [--tile-size N] "
                    "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "

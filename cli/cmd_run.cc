@@ -83,6 +83,9 @@ int RunRun(int argc, char** argv) {
   args.Option("--pos-sigma", "POS position accuracy (1 sigma), metres", "2", "M");
   args.Option("--att-sigma", "POS attitude accuracy (1 sigma), degrees", "0.3", "DEG");
   args.Option("--radius", "coarse search radius around the POS prediction, pixels", "64", "PX");
+  args.Option("--wide-radius",
+              "a pair that fails at --radius is tried once more at this radius (0: not), pixels",
+              "128", "PX");
   args.Option("--max-gap", "POS gap beyond which frames get no pose, seconds", "1", "S");
   args.Option("--max-range",
               "ground farther than this from the camera is clipped off a frame (with a warning), "
@@ -137,6 +140,7 @@ int RunRun(int argc, char** argv) {
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");
   options.search_radius_px = args.GetDouble("--radius");
+  options.wide_search_radius_px = args.GetDouble("--wide-radius");
   options.max_range_m = args.GetDouble("--max-range");
   Mosaicker mosaicker(options, camera, pos);
 

@@ -337,6 +337,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("pos_position_sigma_m", &MosaickerOptions::pos_position_sigma_m)
       .def_readwrite("pos_attitude_sigma_deg", &MosaickerOptions::pos_attitude_sigma_deg)
       .def_readwrite("search_radius_px", &MosaickerOptions::search_radius_px)
+      .def_readwrite("wide_search_radius_px", &MosaickerOptions::wide_search_radius_px)
       .def_readwrite("max_range_m", &MosaickerOptions::max_range_m)
       .def_readwrite("publish_interval_s", &MosaickerOptions::publish_interval_s)
       .def_readwrite("tile_size", &MosaickerOptions::tile_size)

@@ -282,6 +282,10 @@ bool MosaickerOptions::IsValid(std::string* error) const {
   if (!(pos_attitude_sigma_deg > 0.0)) return fail("pos_attitude_sigma_deg must be positive");
   if (!(search_radius_px >= 4.0 && search_radius_px <= 1024.0))
     return fail("search_radius_px must be in [4, 1024]");
+  if (!(wide_search_radius_px == 0.0 ||
+        (wide_search_radius_px >= search_radius_px && wide_search_radius_px <= 1024.0))) {
+    return fail("wide_search_radius_px must be 0 (no second try) or in [search_radius_px, 1024]");
+  }
   if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
   if (registration_threads < 1 || registration_threads > 64) {
     return fail("registration_threads must be in 1..64");
@@ -971,8 +975,15 @@ class Mosaicker::Impl : public MosaicSink {
       }
     }
     if (!registrar) registrar = std::make_unique<PairRegistrar>(registration_);
-    const PairRegistration r = registrar->Register(base.image, base.mask, templ.image, templ.mask,
-                                                   predicted, options_.search_radius_px);
+    double radius = options_.search_radius_px;
+    PairRegistration r =
+        registrar->Register(base.image, base.mask, templ.image, templ.mask, predicted, radius);
+    if (!r.ok() && r.status != PairRegistration::Status::kBadInput &&
+        options_.wide_search_radius_px > radius) {
+      // The true offset may lie outside the first radius: once more, searching wider.
+      radius = options_.wide_search_radius_px;
+      r = registrar->Register(base.image, base.mask, templ.image, templ.mask, predicted, radius);
+    }
     {
       std::lock_guard<std::mutex> lock(registrar_mu_);
       registrars_.push_back(std::move(registrar));
@@ -984,7 +995,7 @@ class Mosaicker::Impl : public MosaicSink {
       record.base = &base;
       record.templ = &templ;
       record.predicted_offset = predicted;
-      record.search_radius_px = options_.search_radius_px;
+      record.search_radius_px = radius;
       record.result = &r;
       options_.on_pair_registered(record);
     }

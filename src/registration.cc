@@ -197,6 +197,7 @@ bool FineRegistrationOptions::IsValid(std::string* error) const {
   if (!(max_dense_sigma_px > 0.0)) return fail("max_dense_sigma_px must be > 0");
   if (joint_grid_step_px < 0) return fail("joint_grid_step_px must be >= 0");
   if (!(max_joint_sigma_px > 0.0)) return fail("max_joint_sigma_px must be > 0");
+  if (!(max_coarse_joint_sigma_px > 0.0)) return fail("max_coarse_joint_sigma_px must be > 0");
   if (!(prior_linear_sigma >= 0.0 && prior_perspective_sigma_per_px > 0.0)) {
     return fail("prior_linear_sigma must be >= 0 and prior_perspective_sigma_per_px > 0");
   }
@@ -506,6 +507,7 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
     out.joint_inlier_patches = fit.inlier_patches;
     out.joint_sigma_px = fit.sigma_px;
     out.joint_residual_ratio = fit.residual_ratio;
+    out.joint_from_coarse = !have_initial;
     if (fit.patches < needed) {
       out.status = PairRegistration::Status::kTooFewTiePoints;
       out.reason = Figure("key-point patches", fit.patches, "below", needed);
@@ -557,6 +559,12 @@ PairRegistration FineRegistrar::Register(const cv::Mat& base, const cv::Mat& bas
   if (!dense && joint && !(out.joint_sigma_px <= options_.max_joint_sigma_px)) {
     out.reason = Figure("predicted homography sigma", out.joint_sigma_px, "px above",
                         options_.max_joint_sigma_px);
+    return out;
+  }
+  if (!dense && joint && out.joint_from_coarse &&
+      !(out.joint_sigma_px <= options_.max_coarse_joint_sigma_px)) {
+    out.reason = Figure("predicted homography sigma of a fit from the coarse translation alone",
+                        out.joint_sigma_px, "px above", options_.max_coarse_joint_sigma_px);
     return out;
   }
   if (dense && out.inliers < options_.min_inliers) {
@@ -1248,6 +1256,15 @@ PairRegistrationOptions PipelineRegistrationOptions() {
   // A pair known to 1 px is still worth far more to the optimizer than POS (metres); the
   // registration's own stricter default is for single pairs.
   o.fine.max_joint_sigma_px = 1.0;
+  // Unless the joint fit started from SCD's translation alone (too few single-patch tie points
+  // for RANSAC): then nothing checked its basin, and when the true offset lay outside the search
+  // radius it converged next to a wrong peak. On 8836 accepted pairs of five 900-frame
+  // stretches of the hour's flight (`pipeline_pairs_bench --first N`), the 50 accepted that way
+  // split at this limit: above it 6, five of them 29-103 px wrong (their true offsets 80-97 px
+  // from the prediction, beyond the 64 px radius) and one right to 1.1 px; below it 44 at
+  // 0.11-0.75 px, 37 within 1 px, 5 within 3.1 px, 2 off by 8.6 and 9.6 px (docs/matching.md,
+  // "In the pipeline").
+  o.fine.max_coarse_joint_sigma_px = 0.8;
   // Off: on the bundled sample it raised the mean placement error from 2.02 to 3.08 px
   // (scripts/run-sample.sh), through its known bias on unblurred noisy pairs ("Dense
   // refinement" in docs/matching.md).

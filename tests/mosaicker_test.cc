@@ -18,6 +18,7 @@
 #include <thread>
 
 #include "irmosaic/error.h"
+#include "irmosaic/evaluator.h"
 #include "irmosaic/frame_geometry.h"
 #include "irmosaic/orthorectify.h"
 #include "irmosaic/simulator.h"
@@ -114,6 +115,78 @@ TEST(MosaickerTest, GainJumpsAreCompensatedAcrossOverlaps) {
   fs::remove_all(store);
 }
 
+// The last, most oblique frame of a sweep deep in the sample flight (frame 48271 of the hour
+// `flight_bench` runs): POS predicts its offsets to the previous frame and to the previous
+// sweep 87 and 142 px from the truth, beyond the coarse match's first 64 px radius, so both
+// pairs fail there and the frame falls back to POS (81 px off; in the 8-bit hour, before the
+// limit on joint fits from the coarse translation alone, one pair was accepted in a wrong basin
+// and put it 153 px off). Searched again at the wide radius (128 px), it registers.
+TEST(MosaickerTest, ASweepEndFrameBeyondTheFirstSearchRadiusRegistersAtTheWideOne) {
+  SynthOptions options = SynthOptions::LoadJson(testing::SamplePath("sample_flight/flight.json"));
+  constexpr int kFirst = 48240, kFrame = 48271, kLast = 48280;
+  options.frame_count = kLast + 1;
+  const FlightSimulator sim(options);
+  const std::string store =
+      (fs::temp_directory_path() / ("irmosaic_wide_" + std::to_string(::getpid()))).string();
+  Placements truth;
+  truth.origin_lat_deg = sim.frame().origin_lat_deg();
+  truth.origin_lon_deg = sim.frame().origin_lon_deg();
+  truth.gsd_m = sim.grid().gsd_m;
+  truth.image_width = sim.camera().width;
+  truth.image_height = sim.camera().height;
+  truth.frames.push_back({kFrame, 0.0, sim.TrueMosaicFromImage(kFrame)});
+  // Frame kFrame's placement and its error against the truth (truth pixels), and the error of
+  // its POS placement.
+  auto place = [&](double wide_radius_px, FramePlacement* frame, double* error_px,
+                   double* pos_error_px) {
+    MosaickerOptions mo;
+    mo.store_path = store;
+    mo.mode = TileStoreOptions::Mode::kOverwrite;
+    mo.ground_height_m = sim.options().ground_height_m;
+    mo.wide_search_radius_px = wide_radius_px;
+    Mosaicker mosaicker(mo, sim.camera(), sim.MeasuredPos());
+    for (int i = kFirst; i <= kLast; ++i) {
+      const SimFrame f = sim.Render(i);
+      ASSERT_TRUE(mosaicker.Push(i, f.time_s, f.image).placed()) << "frame " << i;
+    }
+    mosaicker.Finish();
+    Placements run, pos;
+    run.origin_lat_deg = pos.origin_lat_deg = mosaicker.summary().origin_lat_deg;
+    run.origin_lon_deg = pos.origin_lon_deg = mosaicker.summary().origin_lon_deg;
+    run.gsd_m = pos.gsd_m = mosaicker.summary().gsd_m;
+    for (const FramePlacement& p : mosaicker.Placements()) {
+      if (p.index != kFrame) continue;
+      *frame = p;
+      run.frames.push_back({kFrame, p.time_s, p.mosaic_from_image});
+      pos.frames.push_back({kFrame, p.time_s, p.pos_mosaic_from_image});
+    }
+    const PlacementScore score = Evaluator(truth).ScorePlacements(run, "run");
+    const PlacementScore pos_score = Evaluator(truth).ScorePlacements(pos, "pos");
+    ASSERT_EQ(score.frames_scored, 1);
+    ASSERT_EQ(pos_score.frames_scored, 1);
+    *error_px = score.rmse_px.max;
+    *pos_error_px = pos_score.rmse_px.max;
+  };
+  FramePlacement wide, narrow;
+  double wide_px = 0.0, narrow_px = 0.0, pos_px = 0.0;
+  place(128.0, &wide, &wide_px, &pos_px);
+  place(0.0, &narrow, &narrow_px, &pos_px);
+  std::printf(
+      "frame %d: POS %.1f px; first radius only %.1f px (%s); with the wide try %.2f px "
+      "(%zu neighbours)\n",
+      kFrame, pos_px, narrow_px, narrow.pos_only ? "POS only" : "registered", wide_px,
+      wide.neighbours.size());
+  EXPECT_TRUE(narrow.pos_only);
+  EXPECT_GT(narrow_px, 40.0);
+  EXPECT_GT(pos_px, 40.0);
+  // Registered: within the few pixels a sweep's last frame is placed to in this flight (its
+  // far field is magnified; 2.8 px here), where POS alone is 81 px off.
+  EXPECT_FALSE(wide.pos_only) << wide.note;
+  EXPECT_GE(wide.neighbours.size(), 1u);
+  EXPECT_LT(wide_px, 8.0);
+  fs::remove_all(store);
+}
+
 TEST(MosaickerTest, BadFramesAreSkippedWithReasonsAndTheRunGoesOn) {
   FlightSimulator sim(Flight(6));
   const std::string store =
@@ -186,6 +259,8 @@ TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
       {"gsd_m", [](MosaickerOptions* o) { o->gsd_m = -1.0; }},
       {"gsd_m", [](MosaickerOptions* o) { o->gsd_m = std::numeric_limits<double>::infinity(); }},
       {"search_radius_px", [](MosaickerOptions* o) { o->search_radius_px = 2.0; }},
+      {"wide_search_radius_px", [](MosaickerOptions* o) { o->wide_search_radius_px = 32.0; }},
+      {"wide_search_radius_px", [](MosaickerOptions* o) { o->wide_search_radius_px = 2048.0; }},
       {"publish_interval_s", [](MosaickerOptions* o) { o->publish_interval_s = 0.0; }},
       {"heap_trim_interval_frames", [](MosaickerOptions* o) { o->heap_trim_interval_frames = -1; }},
       {"max_cached_tiles", [](MosaickerOptions* o) { o->max_cached_tiles = 0; }},

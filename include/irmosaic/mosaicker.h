@@ -30,7 +30,7 @@ struct PairRegistrationRecord {
   const OrthoImage* base = nullptr;
   const OrthoImage* templ = nullptr;
   Eigen::Vector2d predicted_offset = Eigen::Vector2d::Zero();  // templ(0,0) in base's pixels.
-  double search_radius_px = 0.0;
+  double search_radius_px = 0.0;  // Of the try reported: the wide radius if the first failed.
   const PairRegistration* result = nullptr;
 };
 
@@ -50,8 +50,12 @@ struct MosaickerOptions {
   double pos_position_sigma_m = 2.0;    // POS accuracy (1 sigma) per axis.
   double pos_attitude_sigma_deg = 0.3;  // POS accuracy (1 sigma) per angle.
   double search_radius_px = 64.0;       // SCD search around the POS prediction.
-  double max_range_m = 30000.0;         // Ground farther than this is clipped off a frame.
-  double publish_interval_s = 0.25;     // How often the store publishes a new generation.
+  // A pair that fails at search_radius_px is tried once more at this radius (0: not): the POS
+  // prediction of a sweep's most oblique frames can be off by more than 64 px (80-97 px in the
+  // sample flight's failures), and the coarse match cannot find an offset outside its radius.
+  double wide_search_radius_px = 128.0;
+  double max_range_m = 30000.0;      // Ground farther than this is clipped off a frame.
+  double publish_interval_s = 0.25;  // How often the store publishes a new generation.
   // How often overviews and frames.gpkg follow (TileStoreOptions::overview_interval_s).
   double overview_interval_s = 2.0;
   // The store's writer thread's nice increment (TileStoreOptions::writer_nice, 0..19).

@@ -82,6 +82,10 @@ struct FineRegistrationOptions {
   // Joint-fit accept criterion: predicted std of the homography at the corners of the key
   // points' box (px).
   double max_joint_sigma_px = 0.25;
+  // The same criterion for a joint fit that started from the coarse (SCD) translation alone:
+  // too few single-patch tie points for a RANSAC fit, so nothing independent checked the basin
+  // it converged in. The stricter of the two limits applies.
+  double max_coarse_joint_sigma_px = 0.25;
   // Final direct refinement over the whole overlap (ours): Gauss-Newton on the image difference
   // at every pixel of a Gaussian pyramid level of the overlap (8 homography parameters, gain
   // and offset, the distortion prior above), coarse level first. The key-point patches carry a
@@ -137,6 +141,7 @@ struct PairRegistration {
   int joint_inlier_patches = 0;
   double joint_sigma_px = 0.0;
   double joint_residual_ratio = 0.0;
+  bool joint_from_coarse = false;  // The joint fit started from the coarse translation alone.
   // Dense fit (when enabled): overlap pixels used at the finest level, predicted homography std
   // at the overlap corners (px), RMS of the final image residual (gray levels), iterations.
   int dense_pixels = 0;
