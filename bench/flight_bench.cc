@@ -466,14 +466,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     }
     const irmosaic::PlacementScore score =
         irmosaic::Evaluator(truth).ScorePlacements(run, "flight_bench");
-    std::vector<irmosaic::FrameScore> worst = score.frames;
-    const size_t worst_n = std::min<size_t>(5, worst.size());
-    std::partial_sort(worst.begin(), worst.begin() + static_cast<std::ptrdiff_t>(worst_n),
-                      worst.end(),
-                      [](const irmosaic::FrameScore& a, const irmosaic::FrameScore& b) {
-                        return a.rmse_px > b.rmse_px;
-                      });
-    worst.resize(worst_n);
+    const std::vector<irmosaic::FrameScore> worst = irmosaic::WorstFrames(score, 5);
     int64_t over_5px = 0, over_20px = 0;
     for (const irmosaic::FrameScore& f : score.frames) {
       over_5px += f.rmse_px > 5.0;

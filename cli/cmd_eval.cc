@@ -67,18 +67,11 @@ int RunEval(int argc, char** argv) {
               << s.georeference_offset_m.norm() << " m; absolute RMSE " << s.absolute_rmse_m
               << " m; relative RMSE " << s.relative_rmse_px << " px\n";
     // The frames to look at first: the worst five, by RMSE.
-    std::vector<const FrameScore*> worst;
-    for (const FrameScore& f : s.frames) worst.push_back(&f);
-    const size_t n = std::min<size_t>(5, worst.size());
-    std::partial_sort(worst.begin(), worst.begin() + static_cast<std::ptrdiff_t>(n), worst.end(),
-                      [](const FrameScore* a, const FrameScore* b) {
-                        return a->rmse_px > b->rmse_px ||
-                               (a->rmse_px == b->rmse_px && a->index < b->index);
-                      });
-    if (n > 0) {
+    const std::vector<FrameScore> worst = WorstFrames(s, 5);
+    if (!worst.empty()) {
       std::cout << "  worst frames (index: RMSE px):";
-      for (size_t k = 0; k < n; ++k) {
-        std::cout << (k ? ", " : " ") << worst[k]->index << ": " << worst[k]->rmse_px;
+      for (size_t k = 0; k < worst.size(); ++k) {
+        std::cout << (k ? ", " : " ") << worst[k].index << ": " << worst[k].rmse_px;
       }
       std::cout << "\n";
     }

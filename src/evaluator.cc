@@ -193,6 +193,17 @@ ErrorStats ComputeErrorStats(std::vector<double> values) {
   return s;
 }
 
+std::vector<FrameScore> WorstFrames(const PlacementScore& score, size_t n) {
+  std::vector<FrameScore> worst = score.frames;
+  n = std::min(n, worst.size());
+  std::partial_sort(worst.begin(), worst.begin() + static_cast<std::ptrdiff_t>(n), worst.end(),
+                    [](const FrameScore& a, const FrameScore& b) {
+                      return a.rmse_px > b.rmse_px || (a.rmse_px == b.rmse_px && a.index < b.index);
+                    });
+  worst.resize(n);
+  return worst;
+}
+
 Evaluator::Evaluator(Placements truth, EvaluatorOptions options)
     : truth_(std::move(truth)), options_(options) {
   if (options_.width <= 0 || options_.height <= 0) {

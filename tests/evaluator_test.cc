@@ -171,6 +171,21 @@ TEST(Evaluator, Statistics) {
   EXPECT_NEAR(s.p95, 2.0 + 0.85 * 2.0, 1e-12);
 }
 
+// The worst frames of a score: the largest RMSE first, ties by index, at most n.
+TEST(Evaluator, WorstFramesAreTheLargestRmseFirst) {
+  PlacementScore score;
+  const double rmse[] = {0.4, 7.5, 0.9, 7.5, 120.0, 0.1, 3.0};
+  for (int i = 0; i < 7; ++i) score.frames.push_back({10 + i, rmse[i]});
+  const std::vector<FrameScore> worst = WorstFrames(score, 4);
+  ASSERT_EQ(worst.size(), 4u);
+  EXPECT_EQ(worst[0].index, 14);  // 120 px.
+  EXPECT_EQ(worst[1].index, 11);  // 7.5 px, the lower index of the tie first.
+  EXPECT_EQ(worst[2].index, 13);
+  EXPECT_EQ(worst[3].index, 16);  // 3 px.
+  EXPECT_EQ(WorstFrames(score, 50).size(), 7u);
+  EXPECT_TRUE(WorstFrames(PlacementScore{}).empty());
+}
+
 }  // namespace
 }  // namespace irmosaic
 

@@ -133,6 +133,10 @@ class IRMOSAIC_EXPORT Evaluator {
 // Statistics of a list of values (px); share_within_1px counts values <= 1.
 IRMOSAIC_EXPORT ErrorStats ComputeErrorStats(std::vector<double> values);
 
+// The `n` frames of a score with the largest RMSE (px), worst first; frames of equal RMSE by
+// index. Fewer when the score holds fewer. Where to look first in a long run.
+IRMOSAIC_EXPORT std::vector<FrameScore> WorstFrames(const PlacementScore& score, size_t n = 5);
+
 // Draws RMSE (px, log scale) against frame index, one curve per score, with legend and axes.
 IRMOSAIC_EXPORT void PlotRmseVsIndex(const std::vector<PlacementScore>& scores,
                                      const std::string& png_path, const std::string& title = "");
