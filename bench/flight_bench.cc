@@ -472,6 +472,23 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
       over_5px += f.rmse_px > 5.0;
       over_20px += f.rmse_px > 20.0;
     }
+    // By the frame's position in its sweep (0: the sweep's first frame; frames of a sweep
+    // differ in obliquity, footprint and neighbours): where the error sits.
+    const int per_sweep = std::max(1, sim.options().frames_per_sweep);
+    std::vector<std::vector<double>> by_position(static_cast<size_t>(per_sweep));
+    for (const irmosaic::FrameScore& f : score.frames) {
+      by_position[static_cast<size_t>(f.index % per_sweep)].push_back(f.rmse_px);
+    }
+    nlohmann::json by_position_json = nlohmann::json::array();
+    for (int k = 0; k < per_sweep; ++k) {
+      const irmosaic::ErrorStats e =
+          irmosaic::ComputeErrorStats(by_position[static_cast<size_t>(k)]);
+      by_position_json.push_back({{"position", k},
+                                  {"frames", e.count},
+                                  {"mean_px", e.mean},
+                                  {"p95_px", e.p95},
+                                  {"max_px", e.max}});
+    }
     nlohmann::json worst_json = nlohmann::json::array();
     for (const irmosaic::FrameScore& f : worst) {
       const Facts& x = facts[f.index];
@@ -549,6 +566,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"placement_frames_over_5px", over_5px},
             {"placement_frames_over_20px", over_20px},
             {"placement_worst_frames", worst_json},
+            {"placement_by_sweep_position", by_position_json},
             {"publish_interval_s", options.publish_interval_s},
             {"overview_interval_s", options.overview_interval_s},
             {"tile_size", options.tile_size},
@@ -1019,6 +1037,11 @@ int main(int argc, char** argv) {
                 << (w["pos_only"].get<bool>() ? ", POS only" : "") << ", "
                 << w["neighbours"].get<int64_t>() << " neighbours, " << w["inliers"].get<int>()
                 << " inliers)";
+    }
+    std::cout << "\nplacement by position in the sweep (mean / p95 / max px):";
+    for (const auto& b : f["placement_by_sweep_position"]) {
+      std::cout << " " << b["position"].get<int>() << ": " << Fixed(b["mean_px"], 2) << " / "
+                << Fixed(b["p95_px"], 2) << " / " << Fixed(b["max_px"], 2);
     }
     std::cout << "\nfusion: images held at the end " << f["held_images"].get<int64_t>() << " ("
               << Fixed(f["held_image_mib"], 0) << " MiB in memory), "
