@@ -21,6 +21,17 @@ struct PairDegradation {
   double prior_error_px = 1.0;      // Coarse offset error, uniform in +-this per axis.
 };
 
+// The paper's distortions of a pair besides the attitude error (issue 5): gain 0.8 and offset 20
+// on the template, blur sigma 2 px on both frames, and noise at `psnr_db` (0: none).
+inline PairDegradation PaperDegradation(double psnr_db = 0.0) {
+  PairDegradation d;
+  d.gain = 0.8;
+  d.offset = 20.0;
+  d.blur_sigma_px = 2.0;
+  d.psnr_db = psnr_db;
+  return d;
+}
+
 struct SyntheticPair {
   cv::Mat base, templ;                 // CV_8U, 640x512.
   Eigen::Matrix3d base_from_template;  // Truth.

@@ -21,6 +21,7 @@ namespace {
 
 using testing::MakePair;
 using testing::PairDegradation;
+using testing::PaperDegradation;
 
 cv::Mat LoadGray(const std::string& relative) {
   return cv::imread(testing::SharedDataPath(relative), cv::IMREAD_GRAYSCALE);
@@ -77,10 +78,7 @@ TEST(FineRegistration, DistortedPairsWithGainAndBlurMeetTheIssueBound) {
   // the overlap < 0.3 px in >= 95 % of pairs. The issue also adds noise at PSNR 20 dB; that
   // part is NOT met yet (2 of 24 pairs within 0.3 px, see docs/benchmarks.md), so it is
   // measured by bench/registration_bench.cc rather than asserted here.
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
+  PairDegradation d = PaperDegradation();
   const Tally t = RunSimulated(d, 8, 22, {}, 0.3);
   EXPECT_GE(t.within, 0.95 * t.pairs);
 }
@@ -89,10 +87,7 @@ TEST(FineRegistration, DistortedPairsWithGainAndBlurMeetTheIssueBound) {
 // for an odd offset the two copies' level pixels do not meet and the gain is equalised at full
 // resolution, for an even one at the level (src/registration.cc). Both must hold the bound.
 TEST(FineRegistration, HalfResolutionWithTheDenseFitMeetsTheIssueBound) {
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
+  PairDegradation d = PaperDegradation();
   FineRegistrationOptions o;
   ASSERT_TRUE(o.dense_refinement);
   o.lsm_level = 1;
@@ -106,10 +101,7 @@ TEST(FineRegistration, HalfResolutionWithTheDenseFitMeetsTheIssueBound) {
 // accepts pairs up to 1 px predicted sigma, which the optimizer weighs): at least 90 %
 // accepted, none accepted beyond the 1 px a seam needs, median under 0.5 px.
 void ExpectPipelineBound(const FineRegistrationOptions& pipeline) {
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
+  PairDegradation d = PaperDegradation();
   ASSERT_FALSE(pipeline.dense_refinement);
   const Tally t = RunSimulated(d, 8, 22, pipeline, 0.3);
   EXPECT_GE(t.within, 0.95 * t.pairs);
@@ -125,11 +117,7 @@ void ExpectPipelineBound(const FineRegistrationOptions& pipeline) {
 // is not: in the flight the first kind, at sigma 0.88-0.97 px, had converged next to wrong
 // coarse peaks (src/registration.cc, PipelineRegistrationOptions).
 TEST(FineRegistration, AJointFitFromTheCoarseTranslationAloneMeetsItsOwnLimit) {
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
-  d.psnr_db = 20.0;
+  PairDegradation d = PaperDegradation(20.0);
   const FineRegistrationOptions pipeline = PipelineRegistrationOptions().fine;
   FineRegistrationOptions strict = pipeline;
   strict.max_coarse_joint_sigma_px = 1e-3;  // Refuses every fit from the coarse translation.
@@ -198,11 +186,7 @@ void ExpectIndependentOfCanvas(const FineRegistrationOptions& options) {
   const cv::Mat source = LoadGray(kSources[0]);
   ASSERT_FALSE(source.empty());
   std::mt19937 rng(31);
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
-  d.psnr_db = 30.0;
+  PairDegradation d = PaperDegradation(30.0);
   FineRegistrar registrar(options);
   const cv::Point base_at(37, 11), templ_at(5, 60);
   auto embed = [](const cv::Mat& image, cv::Point at, cv::Mat* canvas, cv::Mat* mask) {
@@ -317,11 +301,7 @@ TEST(FineRegistration, NoisyDistortedPairsAtPsnr20) {
   // (median corner error 0.62 px, bound median 0.6 px). What is asserted: the measured count,
   // and that the accept criterion (predicted sigma of the dense fit <= 1/3 px) lets no pair
   // beyond 1 px through.
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
-  d.psnr_db = 20.0;
+  PairDegradation d = PaperDegradation(20.0);
   const Tally t = RunSimulated(d, 8, 22, {}, 0.3);
   EXPECT_GE(t.within, 4);
   int accepted_beyond_1px = 0;
@@ -520,10 +500,7 @@ TEST(RegisterCli, PrintsJsonAndRefusesUnreadableInput) {
 // End to end (SCD + FLSM + RANSAC), compiled once include/irmosaic/scd.h is on the branch: the
 // prior is 12 px off, SCD must find the translation and the homography must meet the bound.
 TEST(PairRegistration, EndToEndFromAPosPrior) {
-  PairDegradation d;
-  d.gain = 0.8;
-  d.offset = 20.0;
-  d.blur_sigma_px = 2.0;
+  PairDegradation d = PaperDegradation();
   d.prior_error_px = 0.0;
   PairRegistrar registrar;
   std::mt19937 rng(31);
