@@ -4,7 +4,8 @@
 //
 //   flight_bench [--frames N] [--paced-frames N] [--compare 100,300] [--no-compare]
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
-//                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] [--window N]
+//                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX]
+//                [--settled-rerender-threshold PX] [--settled-rerenders] [--window N]
 //                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
 //                [--ground-cache-mb N]
 //                [--lsm-level N] [--seed N] [--first N] [--bit-depth 8|16]
@@ -114,6 +115,8 @@ struct Tuning {
   int tile_size = -1;
   int max_rerenders_per_solve = -1;
   double rerender_threshold_px = -1.0;
+  double settled_rerender_threshold_px = -1.0;  // FusionOptions::settled_rerender_threshold_px.
+  int rerender_settled = -1;                    // FusionOptions::rerender_settled_frames (0 / 1).
   int window_frames = -1;
   int solve_every_frames = -1;
   int short_window_frames = -1;  // FusionOptions::short_window_frames (-1: the default).
@@ -285,6 +288,12 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.rerender_threshold_px >= 0) {
     options.fusion.rerender_threshold_px = g_tuning.rerender_threshold_px;
   }
+  if (g_tuning.rerender_settled >= 0) {
+    options.fusion.rerender_settled_frames = g_tuning.rerender_settled != 0;
+  }
+  if (g_tuning.settled_rerender_threshold_px >= 0) {
+    options.fusion.settled_rerender_threshold_px = g_tuning.settled_rerender_threshold_px;
+  }
   if (g_tuning.window_frames > 0) options.fusion.window_frames = g_tuning.window_frames;
   if (g_tuning.short_window_frames >= 0) {
     options.fusion.short_window_frames = g_tuning.short_window_frames;
@@ -321,6 +330,19 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.heap_trim_interval_frames = g_tuning.heap_trim_interval_frames;
   }
   if (g_tuning.tune_heap >= 0) options.tune_heap = g_tuning.tune_heap != 0;
+  // Where each frame was last painted (the mosaic on disk shows it there; re-renders can be
+  // deferred), by frame index from the first one; NaN until painted. Preallocated (72 bytes a
+  // frame) so the flight's memory figures do not see it grow.
+  std::vector<Eigen::Matrix3d> painted(
+      static_cast<size_t>(config.frames),
+      Eigen::Matrix3d::Constant(std::numeric_limits<double>::quiet_NaN()));
+  std::mutex painted_mu;
+  options.on_frame_painted = [&](const irmosaic::FramePlacement& p) {
+    const int64_t k = p.index - g_tuning.first_frame;
+    if (k < 0 || k >= config.frames) return;
+    std::lock_guard<std::mutex> lock(painted_mu);
+    painted[static_cast<size_t>(k)] = p.mosaic_from_image;
+  };
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
@@ -466,6 +488,26 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     }
     const irmosaic::PlacementScore score =
         irmosaic::Evaluator(truth).ScorePlacements(run, "flight_bench");
+    // The mosaic as painted (what a reader of the store sees) against the truth, and against
+    // the final placements (what the disk lags behind the solution).
+    irmosaic::Placements on_disk = run;
+    on_disk.frames.clear();
+    {
+      std::lock_guard<std::mutex> lock(painted_mu);
+      for (const irmosaic::Placement& f : run.frames) {
+        const Eigen::Matrix3d& h = painted[static_cast<size_t>(f.index - g_tuning.first_frame)];
+        if (std::isfinite(h(2, 2))) on_disk.frames.push_back({f.index, f.time_s, h});
+      }
+    }
+    const irmosaic::PlacementScore disk_score =
+        irmosaic::Evaluator(truth).ScorePlacements(on_disk, "flight_bench (as painted)");
+    irmosaic::Placements solution = run;
+    solution.image_width = truth.image_width;
+    solution.image_height = truth.image_height;
+    const irmosaic::PlacementScore disk_lag =
+        irmosaic::Evaluator(solution).ScorePlacements(on_disk, "flight_bench (painted - final)");
+    int64_t disk_lag_over_1px = 0;
+    for (const irmosaic::FrameScore& f : disk_lag.frames) disk_lag_over_1px += f.rmse_px > 1.0;
     const std::vector<irmosaic::FrameScore> worst = irmosaic::WorstFrames(score, 5);
     int64_t over_5px = 0, over_20px = 0;
     for (const irmosaic::FrameScore& f : score.frames) {
@@ -551,6 +593,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"deferred_rerenders", s.fusion.deferred_rerenders},
             {"radiometric_rerenders", s.fusion.radiometric_rerenders},
             {"rerender_candidates", s.fusion.rerender_candidates},
+            {"settled_rerender_candidates", s.fusion.settled_rerender_candidates},
+            {"settled_rerenders", s.fusion.settled_rerenders},
+            {"settled_left_lagging", s.fusion.settled_left_lagging},
             {"oldest_neighbour_frames", oldest_neighbour},
             {"held_images", s.fusion.held_images},
             {"held_image_mib", static_cast<double>(s.fusion.held_image_bytes) / 1048576.0},
@@ -567,11 +612,21 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"placement_frames_over_20px", over_20px},
             {"placement_worst_frames", worst_json},
             {"placement_by_sweep_position", by_position_json},
+            {"painted_frames", disk_score.frames_scored},
+            {"painted_mean_px", disk_score.rmse_px.mean},
+            {"painted_p95_px", disk_score.rmse_px.p95},
+            {"painted_max_px", disk_score.rmse_px.max},
+            {"painted_lag_mean_px", disk_lag.rmse_px.mean},
+            {"painted_lag_p95_px", disk_lag.rmse_px.p95},
+            {"painted_lag_max_px", disk_lag.rmse_px.max},
+            {"painted_lag_frames_over_1px", disk_lag_over_1px},
             {"publish_interval_s", options.publish_interval_s},
             {"overview_interval_s", options.overview_interval_s},
             {"tile_size", options.tile_size},
             {"max_rerenders_per_solve", options.fusion.max_rerenders_per_solve},
             {"rerender_threshold_px", options.fusion.rerender_threshold_px},
+            {"settled_rerender_threshold_px", options.fusion.settled_rerender_threshold_px},
+            {"rerender_settled_frames", options.fusion.rerender_settled_frames},
             {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
             {"mean_painted_lag_px", s.fusion.mean_painted_lag_px},
             {"window_frames", options.fusion.window_frames},
@@ -845,6 +900,10 @@ int main(int argc, char** argv) {
       g_tuning.max_rerenders_per_solve = std::stoi(value());
     } else if (a == "--rerender-threshold") {
       g_tuning.rerender_threshold_px = std::stod(value());
+    } else if (a == "--settled-rerender-threshold") {
+      g_tuning.settled_rerender_threshold_px = std::stod(value());
+    } else if (a == "--settled-rerenders") {
+      g_tuning.rerender_settled = 1;
     } else if (a == "--window") {
       g_tuning.window_frames = std::stoi(value());
     } else if (a == "--short-window") {
@@ -912,6 +971,7 @@ int main(int argc, char** argv) {
       std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
                    "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
+                   "[--settled-rerender-threshold PX] [--settled-rerenders] "
                    "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
                    "[--registration-threads N] [--lsm-level N] [--keypoints-at-level 0|1] "
                    "[--max-pair-sigma PX] "
@@ -1043,6 +1103,15 @@ int main(int argc, char** argv) {
       std::cout << " " << b["position"].get<int>() << ": " << Fixed(b["mean_px"], 2) << " / "
                 << Fixed(b["p95_px"], 2) << " / " << Fixed(b["max_px"], 2);
     }
+    std::cout << "\nas painted (the mosaic on disk) vs truth mean "
+              << Fixed(f["painted_mean_px"], 3) << " px, p95 " << Fixed(f["painted_p95_px"], 3)
+              << ", max " << Fixed(f["painted_max_px"], 3) << "; painted vs final placement mean "
+              << Fixed(f["painted_lag_mean_px"], 3) << " px, p95 "
+              << Fixed(f["painted_lag_p95_px"], 3) << ", max " << Fixed(f["painted_lag_max_px"], 3)
+              << ", frames over 1 px " << f["painted_lag_frames_over_1px"].get<int64_t>() << " of "
+              << f["painted_frames"].get<int64_t>() << "; settled frames re-rendered "
+              << f["settled_rerenders"].get<int64_t>() << ", frozen lagging "
+              << f["settled_left_lagging"].get<int64_t>();
     std::cout << "\nfusion: images held at the end " << f["held_images"].get<int64_t>() << " ("
               << Fixed(f["held_image_mib"], 0) << " MiB in memory), "
               << f["spilled_images"].get<int64_t>() << " on disk (file "

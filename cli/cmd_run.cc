@@ -77,6 +77,10 @@ int RunRun(int argc, char** argv) {
               "whole window (0: every solve does)",
               "100", "N");
   args.Flag("--no-optimize", "real-time mapping only (no global optimization)");
+  args.Flag("--settled-rerenders",
+            "re-render frames that left the optimization window where the solution put them, so "
+            "the finished mosaic shows every frame at its final placement (costs publish latency "
+            "at full load)");
   args.Flag("--no-planned-extent",
             "do not size the store to the flight's POS footprints ahead (the GDAL plug-in, and "
             "QGIS through it, then show the painted extent of when they opened the store)");
@@ -133,6 +137,7 @@ int RunRun(int argc, char** argv) {
   options.fusion.window_frames = args.GetInt("--window");
   options.fusion.short_window_frames = args.GetInt("--short-window");
   options.fusion.optimize = !args.Has("--no-optimize");
+  options.fusion.rerender_settled_frames = args.Has("--settled-rerenders");
   options.planned_extent = !args.Has("--no-planned-extent");
   options.registration_threads = args.GetInt("--registration-threads");
   options.max_cached_tiles = args.GetInt("--max-cached-tiles");
@@ -218,6 +223,8 @@ int RunRun(int argc, char** argv) {
         {"max_solve_ms", s.fusion.max_solve_ms},
         {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
         {"rerendered_frames", s.fusion.rerendered_frames},
+        {"settled_rerenders", s.fusion.settled_rerenders},
+        {"settled_left_lagging", s.fusion.settled_left_lagging},
         {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
         {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},

@@ -309,6 +309,8 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("rerender_threshold_px", &FusionOptions::rerender_threshold_px)
       .def_readwrite("max_rerenders_per_solve", &FusionOptions::max_rerenders_per_solve)
       .def_readwrite("max_output_backlog_s", &FusionOptions::max_output_backlog_s)
+      .def_readwrite("rerender_settled_frames", &FusionOptions::rerender_settled_frames)
+      .def_readwrite("settled_rerender_threshold_px", &FusionOptions::settled_rerender_threshold_px)
       .def_readwrite("optimizer_nice", &FusionOptions::optimizer_nice)
       .def_readwrite("optimize", &FusionOptions::optimize)
       .def_readwrite("compensate_gain", &FusionOptions::compensate_gain)

@@ -104,6 +104,9 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (!(robust_scale > 0.0)) return fail("robust_scale must be positive");
   if (!(pair_robust_scale_px > 0.0)) return fail("pair_robust_scale_px must be positive");
   if (!(rerender_threshold_px >= 0.0)) return fail("rerender_threshold_px must be >= 0");
+  if (!(settled_rerender_threshold_px >= 0.0)) {
+    return fail("settled_rerender_threshold_px must be >= 0");
+  }
   if (!(gain_prior_sigma > 0.0)) return fail("gain_prior_sigma must be positive");
   if (feather_px < 1) return fail("feather_px must be at least 1");
   if (max_rerenders_per_solve < 0) return fail("max_rerenders_per_solve must be >= 0");
@@ -297,6 +300,7 @@ class MapFusion::Impl {
         const bool unrefined = options_.optimize && oldest_placement.optimized_times == 0;
         if (unrefined && window_.size() <= hard) break;
         if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
+        if (PaintLagsFinal(*window_.front())) stats_.settled_left_lagging += 1;
         window_.pop_front();
       }
       const int64_t oldest = window_.front()->data.index;
@@ -461,6 +465,34 @@ class MapFusion::Impl {
                                                              : options_.window_frames);
   }
 
+  // How far a frame's paint lags `live`, in units of the re-render thresholds (above 1: to be
+  // re-rendered): the largest corner move over rerender_threshold_px, or the gain or offset
+  // change over 1 % (of the offset's scale). `shift` gets the move's part.
+  double PaintLag(const FramePlacement& painted, const FramePlacement& live,
+                  double* shift = nullptr, double threshold_px = -1.0) const {
+    if (threshold_px < 0.0) threshold_px = options_.rerender_threshold_px;
+    const double value_scale = std::max(1.0, std::abs(live.offset) + 1000.0);
+    const double radiometry =
+        std::max(std::abs(live.gain - painted.gain) / 0.01,
+                 std::abs(live.offset - painted.offset) / (0.01 * value_scale));
+    const double moved = CornerShift(painted.mosaic_from_image, live.mosaic_from_image, camera_) /
+                         std::max(threshold_px, 1e-9);
+    if (shift) *shift = moved;
+    return std::max(moved, radiometry);
+  }
+
+  // A refined frame that still holds its image (under mu_) and whose paint lags its
+  // placement: a re-render is due once no solve will move it again.
+  bool PaintLagsFinal(const Held& f) const {
+    if (!options_.render || !options_.optimize || !options_.rerender_settled_frames || replaying_) {
+      return false;
+    }
+    if (f.data.image.empty() && !f.spilled) return false;
+    const FramePlacement& live = PlacementAt(f.slot);
+    return live.optimized_times > 0 &&
+           PaintLag(f.rendered, live, nullptr, options_.settled_rerender_threshold_px) > 1.0;
+  }
+
   // Frees the images of held frames that are no registration candidate any more and that no
   // solve can re-render: older than the newest candidate_frames and window_frames, and
   // refined (a solve reaches back past its window only to unrefined frames; a running one
@@ -472,6 +504,7 @@ class MapFusion::Impl {
       Held& f = *window_[k];
       if (f.data.image.empty() && !f.spilled) continue;
       if (options_.optimize && PlacementAt(f.slot).optimized_times == 0) continue;
+      if (PaintLagsFinal(f)) continue;  // A solve re-renders it first (SolveWindow).
       f.data.image.release();
       f.spilled.reset();
     }
@@ -1000,6 +1033,7 @@ class MapFusion::Impl {
     // Publish, then re-render frames that moved.
     std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> moved;
     std::vector<std::pair<double, size_t>> candidates;  // (score, index in moved)
+    std::set<size_t> settled_slots;                     // Of moved, the settled frames (see below).
     // Seams on disk (for the lag figures): at each pair's overlap, where the solution puts
     // the two frames against where they were painted. A move both frames share (the window
     // drifting as new POS priors join) leaves the seam as it was.
@@ -1041,15 +1075,8 @@ class MapFusion::Impl {
         }
         if (gains.count(f->slot)) std::tie(live.gain, live.offset) = gains[f->slot];
         // Compared with the frame as painted, so small moves that add up are re-rendered too.
-        const FramePlacement& painted = f->rendered;
-        const double value_scale = std::max(1.0, std::abs(live.offset) + 1000.0);
-        const double radiometry =
-            std::max(std::abs(live.gain - painted.gain) / 0.01,
-                     std::abs(live.offset - painted.offset) / (0.01 * value_scale));
-        const double shift =
-            CornerShift(painted.mosaic_from_image, live.mosaic_from_image, camera_) /
-            std::max(options_.rerender_threshold_px, 1e-9);
-        const double score = std::max(shift, radiometry);
+        double shift = 0.0;
+        const double score = PaintLag(f->rendered, live, &shift);
         if (score > 1.0) {
           stats_.rerender_candidates += 1;
           if (shift <= 1.0) stats_.radiometric_rerenders += 1;
@@ -1057,15 +1084,31 @@ class MapFusion::Impl {
           moved.emplace_back(f, live);
         }
       }
-      // Within the budget, the frames that moved most (in units of the thresholds).
-      const size_t budget = static_cast<size_t>(options_.max_rerenders_per_solve);
-      if (!final_solve && budget > 0 && moved.size() > budget) {
-        std::stable_sort(candidates.begin(), candidates.end(),
-                         [](const auto& a, const auto& b) { return a.first > b.first; });
-        std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> kept;
-        for (size_t k = 0; k < budget; ++k) kept.push_back(moved[candidates[k].second]);
-        moved = std::move(kept);
+      // The frames that moved most (in units of the thresholds) first.
+      std::stable_sort(candidates.begin(), candidates.end(),
+                       [](const auto& a, const auto& b) { return a.first > b.first; });
+      std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> by_score;
+      for (const auto& [score, k] : candidates) by_score.push_back(moved[k]);
+      moved.clear();
+      // Before them, frames no solve refines any more (older than the newest window_frames)
+      // whose paint still lags their placement, now final: what the disk shows of them would
+      // otherwise stay wrong for good (budgets and pauses leave many behind), and one
+      // re-render settles them. Oldest first, in flight order: consecutive frames share most
+      // of their tiles, which the store then reads back and writes once for several frames.
+      // ReleaseImagesLocked holds their images until then.
+      if (options_.render && last_slot == SIZE_MAX) {
+        const size_t refined = static_cast<size_t>(options_.window_frames);
+        for (size_t k = 0; k + refined < window_.size(); ++k) {
+          const std::shared_ptr<Held>& f = window_[k];
+          if (f->slot >= first_slot) break;
+          if (!PaintLagsFinal(*f)) continue;
+          moved.emplace_back(f, PlacementAt(f->slot));
+          images[f->slot] = {f->data.image, f->spilled};
+          settled_slots.insert(f->slot);
+          stats_.settled_rerender_candidates += 1;
+        }
       }
+      moved.insert(moved.end(), by_score.begin(), by_score.end());
       const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
       stats_.solves += 1;
       if (span >= static_cast<size_t>(options_.window_frames)) stats_.full_solves += 1;
@@ -1077,15 +1120,24 @@ class MapFusion::Impl {
       stats_.total_solve_cpu_ms += cpu_ms;
       if (predicted_rmse_px > 0.0) stats_.predicted_rmse_px = predicted_rmse_px;
     }
-    // Re-render, the frames that moved most first. A background solve pauses while the
-    // output is behind (new frames first); what it leaves keeps its painted placement and is
-    // a candidate of the next solve.
+    // Re-render, settled frames and then the frames that moved most. A background solve pauses
+    // while the output is behind (new frames first); what it leaves keeps its painted placement and
+    // is a candidate of the next solve.
     Renderer* renderer = final_solve || last_slot != SIZE_MAX ? &foreground_ : &background_;
     const bool may_defer = renderer == &background_ && options_.max_output_backlog_s > 0.0;
-    size_t rendered_count = 0;
+    // At most max_rerenders_per_solve of them in a background solve (the final solve does
+    // them all). A settled frame's tiles have mostly left the store's cache (read back,
+    // rewritten, their overviews too), so settled frames go only while the output is less
+    // than half max_output_backlog_s behind, and the frames that moved take their turn:
+    // at full load the writer keeps to the newest frames as without them.
+    const size_t budget = final_solve ? 0 : static_cast<size_t>(options_.max_rerenders_per_solve);
+    size_t rendered_count = 0, settled_rendered = 0;
     for (const auto& [frame, placement] : moved) {
-      if (may_defer && sink_ && sink_->OutputBacklogSeconds() > options_.max_output_backlog_s) {
-        break;
+      if (budget > 0 && rendered_count == budget) break;
+      const double backlog_s = may_defer && sink_ ? sink_->OutputBacklogSeconds() : 0.0;
+      if (backlog_s > options_.max_output_backlog_s) break;
+      if (backlog_s > 0.5 * options_.max_output_backlog_s && settled_slots.count(frame->slot)) {
+        continue;
       }
       const cv::Mat image = ImageOf(images[frame->slot]);
       if (!image.empty())
@@ -1096,11 +1148,15 @@ class MapFusion::Impl {
       }
       if (sink_) sink_->FramePlaced(placement);
       ++rendered_count;
+      settled_rendered += settled_slots.count(frame->slot);
     }
     {
       std::lock_guard<std::mutex> lock(mu_);
       stats_.rerendered_frames += static_cast<int64_t>(rendered_count);
-      stats_.deferred_rerenders += static_cast<int64_t>(moved.size() - rendered_count);
+      stats_.settled_rerenders += static_cast<int64_t>(settled_rendered);
+      // The budget's re-renders the output's backlog left to the next solve.
+      const size_t chosen = budget > 0 ? std::min(budget, moved.size()) : moved.size();
+      stats_.deferred_rerenders += static_cast<int64_t>(chosen - std::min(chosen, rendered_count));
       if (!final_solve && last_slot == SIZE_MAX) {
         // The lag the disk keeps after this solve's re-renders (re-rendered frames have none).
         double painted_sum_sq = 0.0;

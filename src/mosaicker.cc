@@ -673,7 +673,9 @@ class Mosaicker::Impl : public MosaicSink {
     return store ? store->BacklogSeconds() : 0.0;
   }
   void FramePlaced(const FramePlacement& placement) override {
-    if (replay_ || !store_) return;
+    if (replay_) return;
+    if (options_.on_frame_painted) options_.on_frame_painted(placement);
+    if (!store_) return;
     FrameRecord record;
     record.index = placement.index;
     record.time_s = placement.time_s;

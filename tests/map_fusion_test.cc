@@ -733,6 +733,101 @@ TEST(MapFusionTest, BackgroundRerendersWaitWhileTheOutputIsBehind) {
   }
 }
 
+// The mosaic as painted against the solution: a frame's last paint (what the disk shows)
+// against its final placement. With a re-render budget too small for what each solve moves,
+// frames that leave the solved window keep a lagging paint unless settled frames are
+// re-rendered (FusionOptions::rerender_settled_frames); with it, every frame ends within the
+// re-render threshold of where the solution puts it.
+TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
+  const Sweep s = MakeSweep(200, 6, 2.0, 0.3, 29);
+  struct LastPaintSink : MosaicSink {
+    std::mutex mu;
+    std::map<int64_t, Eigen::Matrix3d> last;
+    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+    void FramePlaced(const FramePlacement& p) override {
+      std::lock_guard<std::mutex> lock(mu);
+      last[p.index] = p.mosaic_from_image;
+    }
+    double OutputBacklogSeconds() const override { return 0.0; }
+  };
+  struct Outcome {
+    std::vector<double> lag_px;  // Per frame: largest corner move from its last paint.
+    FusionStats stats;
+  };
+  auto run = [&](bool rerender_settled, double settled_threshold_px) {
+    FusionOptions options;
+    options.settled_rerender_threshold_px = settled_threshold_px;
+    options.window_frames = 30;
+    options.short_window_frames = 0;
+    options.solve_every_frames = 4;
+    options.max_rerenders_per_solve = 6;  // Fewer than a solve moves past the threshold.
+    options.compensate_gain = false;
+    options.rerender_settled_frames = rerender_settled;
+    LastPaintSink sink;
+    MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 7), &sink);
+    const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+    for (int64_t i = 0; i < 200; ++i) {
+      FusionFrame f;
+      f.index = i;
+      f.time_s = static_cast<double>(i) * 0.04;
+      f.image = image;
+      f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+      f.prior_sqrt_information = s.prior[static_cast<size_t>(i)];
+      fusion.Push(std::move(f));
+      // Each solve covers the same frames however fast this machine is (up to a minute each).
+      const int64_t solves_due = (i + 1) / options.solve_every_frames;
+      const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+      while (fusion.stats().solves < solves_due && std::chrono::steady_clock::now() < deadline) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      }
+    }
+    fusion.Finish();
+    Outcome out;
+    out.stats = fusion.stats();
+    for (const FramePlacement& p : fusion.Placements()) {
+      const Eigen::Matrix3d& painted = sink.last.at(p.index);
+      double lag = 0.0;
+      for (const Eigen::Vector2d& c :
+           {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(s.camera.width - 0.5, -0.5),
+            Eigen::Vector2d(-0.5, s.camera.height - 0.5),
+            Eigen::Vector2d(s.camera.width - 0.5, s.camera.height - 0.5)}) {
+        lag = std::max(
+            lag, (ApplyHomography(painted, c) - ApplyHomography(p.mosaic_from_image, c)).norm());
+      }
+      out.lag_px.push_back(lag);
+    }
+    return out;
+  };
+  const Outcome without = run(false, 0.25);
+  const Outcome with = run(true, 0.25);
+  // Settled frames re-rendered only past 1 px: fewer of them, each frame within 1 px.
+  const Outcome settled_1px = run(true, 1.0);
+  const auto over = [](const Outcome& o, double px) {
+    return std::count_if(o.lag_px.begin(), o.lag_px.end(), [px](double v) { return v > px; });
+  };
+  std::printf(
+      "painted vs final: without settled re-renders mean %.3f px, max %.3f px, %ld frames over "
+      "0.25 px; with them mean %.3f px, max %.3f px, %ld over 0.25 px (%lld settled re-renders, "
+      "%lld frozen lagging)\n",
+      Mean(without.lag_px), Max(without.lag_px), over(without, 0.25), Mean(with.lag_px),
+      Max(with.lag_px), over(with, 0.25), static_cast<long long>(with.stats.settled_rerenders),
+      static_cast<long long>(with.stats.settled_left_lagging));
+  ASSERT_GE(with.stats.solves, 40);
+  // Without: the budget leaves frames behind for good (the case this option is for).
+  EXPECT_GT(over(without, 0.25), 20);
+  EXPECT_EQ(without.stats.settled_rerenders, 0);
+  // With: every frame within the threshold (the corner move it measures, in single
+  // precision: 1e-3 px), none frozen lagging.
+  EXPECT_GT(with.stats.settled_rerenders, 0);
+  EXPECT_EQ(with.stats.settled_left_lagging, 0);
+  EXPECT_LE(Max(with.lag_px), FusionOptions().rerender_threshold_px + 1e-3);
+  std::printf("settled threshold 1 px: %lld settled re-renders, max %.3f px\n",
+              static_cast<long long>(settled_1px.stats.settled_rerenders), Max(settled_1px.lag_px));
+  EXPECT_LT(settled_1px.stats.settled_rerenders, with.stats.settled_rerenders);
+  EXPECT_EQ(settled_1px.stats.settled_left_lagging, 0);
+  EXPECT_LE(Max(settled_1px.lag_px), 1.0 + 1e-3);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;
@@ -764,6 +859,10 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.short_window_frames = -1;
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("short_window_frames"), std::string::npos);
+  options = FusionOptions();
+  options.settled_rerender_threshold_px = -0.5;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("settled_rerender_threshold_px"), std::string::npos);
   options = FusionOptions();
   options.full_window_every = 0;
   EXPECT_FALSE(options.IsValid(&error));

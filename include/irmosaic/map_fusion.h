@@ -138,6 +138,19 @@ struct FusionOptions {
   // frames reach the disk first, and the re-renders take what the writer can absorb besides.
   // 0: no such pause.
   double max_output_backlog_s = 0.25;
+  // Frames no solve refines any more (older than the newest window_frames) whose paint lags
+  // their final placement by more than settled_rerender_threshold_px (or their gain or offset
+  // by 1 %) are re-rendered by later solves: before the frames that moved, within the same
+  // max_rerenders_per_solve, oldest first, and only while the output is less than half
+  // max_output_backlog_s behind; their images are held until then (up to the 2 x
+  // window_frames frames held); the final solve re-renders those still lagging. Without it the
+  // disk keeps for good what budgets and pauses left behind. Off by default: at 25 fps on 2
+  // cores it makes the finished mosaic match the solution but raises the publish latency
+  // (docs/fusion.md, "The mosaic on disk", with figures).
+  bool rerender_settled_frames = false;
+  // The move (largest corner, px) past which a settled frame is re-rendered; its gain and
+  // offset as for the others.
+  double settled_rerender_threshold_px = 0.25;
   bool optimize = true;           // Run the global optimization thread.
   bool compensate_gain = true;    // Per-frame gain and offset from the overlaps.
   double gain_prior_sigma = 0.5;  // Keeps the global level: gain ~ 1 +- this.
@@ -174,6 +187,13 @@ struct FusionStats {
   // than rerender_threshold_px).
   int64_t rerender_candidates = 0;
   int64_t radiometric_rerenders = 0;
+  // Settled frames (older than the newest window_frames: no solve moves them again) whose
+  // paint lagged their placement: found by solves (counted at each solve that finds them),
+  // re-rendered, and frozen before a solve re-rendered them (the disk keeps them where they
+  // were last painted).
+  int64_t settled_rerender_candidates = 0;
+  int64_t settled_rerenders = 0;
+  int64_t settled_left_lagging = 0;
   // What the mosaic on disk lags behind the placements after each background solve's
   // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
   // seam lag (the base frame's move since painted less the template's, at the overlap), and

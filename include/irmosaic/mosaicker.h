@@ -117,6 +117,13 @@ struct MosaickerOptions {
   // of registration_threads), with its inputs and result; copy what is kept. For replaying the
   // pipeline's own pairs (bench/pipeline_pairs_bench) or logging them. Empty: not called.
   std::function<void(const PairRegistrationRecord&)> on_pair_registered;
+  // Diagnostics: called each time a frame is painted into the mosaic (its first paint and
+  // every re-render after a solve moved it), with the placement it was painted at, on the
+  // painting thread (the caller's or the optimizer's; both may call at once). The last call
+  // for a frame is where the mosaic shows it, which can lag its latest placement (re-renders
+  // are deferred while the output is behind): bench/flight_bench scores both against the
+  // truth. Not called while a resume replays frames (nothing is painted). Empty: not called.
+  std::function<void(const FramePlacement&)> on_frame_painted;
 
   // False with a message naming the option when one is out of range.
   bool IsValid(std::string* error) const;

@@ -331,6 +331,7 @@ def test_background_priorities_are_options_checked_by_name(tmp_path):
     assert options.tune_heap is True
     assert options.fusion.optimizer_nice == 0
     assert options.fusion.max_output_backlog_s == 0.25
+    assert options.fusion.rerender_settled_frames is False
     options.fusion.optimizer_nice = 10
     options.fusion.max_output_backlog_s = 0.0
     options.writer_nice = 0
