@@ -466,8 +466,8 @@ class MapFusion::Impl {
   }
 
   // How far a frame's paint lags `live`, in units of the re-render thresholds (above 1: to be
-  // re-rendered): the largest corner move over rerender_threshold_px, or the gain or offset
-  // change over 1 % (of the offset's scale). `shift` gets the move's part.
+  // re-rendered): the largest corner move over `threshold_px` (negative: rerender_threshold_px),
+  // or the gain or offset change over 1 % (of the offset's scale). `shift` gets the move's part.
   double PaintLag(const FramePlacement& painted, const FramePlacement& live,
                   double* shift = nullptr, double threshold_px = -1.0) const {
     if (threshold_px < 0.0) threshold_px = options_.rerender_threshold_px;
