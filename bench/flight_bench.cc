@@ -595,6 +595,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"rerender_candidates", s.fusion.rerender_candidates},
             {"settled_rerender_candidates", s.fusion.settled_rerender_candidates},
             {"settled_rerenders", s.fusion.settled_rerenders},
+            {"settled_rerenders_on_leaving", s.fusion.settled_rerenders_on_leaving},
             {"settled_left_lagging", s.fusion.settled_left_lagging},
             {"oldest_neighbour_frames", oldest_neighbour},
             {"held_images", s.fusion.held_images},
@@ -1110,8 +1111,9 @@ int main(int argc, char** argv) {
               << Fixed(f["painted_lag_p95_px"], 3) << ", max " << Fixed(f["painted_lag_max_px"], 3)
               << ", frames over 1 px " << f["painted_lag_frames_over_1px"].get<int64_t>() << " of "
               << f["painted_frames"].get<int64_t>() << "; settled frames re-rendered "
-              << f["settled_rerenders"].get<int64_t>() << ", frozen lagging "
-              << f["settled_left_lagging"].get<int64_t>();
+              << f["settled_rerenders"].get<int64_t>() << " ("
+              << f["settled_rerenders_on_leaving"].get<int64_t>()
+              << " as they left), frozen lagging " << f["settled_left_lagging"].get<int64_t>();
     std::cout << "\nfusion: images held at the end " << f["held_images"].get<int64_t>() << " ("
               << Fixed(f["held_image_mib"], 0) << " MiB in memory), "
               << f["spilled_images"].get<int64_t>() << " on disk (file "

@@ -76,11 +76,15 @@ int RunRun(int argc, char** argv) {
               "frames most background solves refine; one solve in 4, and the last, refine the "
               "whole window (0: every solve does)",
               "100", "N");
+  args.Option("--max-rerenders",
+              "frames a background solve re-renders at most, those that moved most (0: no limit; "
+              "the final solve re-renders every frame that moved)",
+              "16", "N");
   args.Flag("--no-optimize", "real-time mapping only (no global optimization)");
-  args.Flag("--settled-rerenders",
-            "re-render frames that left the optimization window where the solution put them, so "
-            "the finished mosaic shows every frame at its final placement (costs publish latency "
-            "at full load)");
+  args.Flag("--no-settled-rerenders",
+            "do not re-render frames that left the optimization window where the solution put "
+            "them: faster (about a fifth), but the finished mosaic then shows many frames at an "
+            "earlier placement (docs/fusion.md, \"The mosaic on disk\")");
   args.Flag("--no-planned-extent",
             "do not size the store to the flight's POS footprints ahead (the GDAL plug-in, and "
             "QGIS through it, then show the painted extent of when they opened the store)");
@@ -136,8 +140,11 @@ int RunRun(int argc, char** argv) {
   options.compression = args.Get("--compression");
   options.fusion.window_frames = args.GetInt("--window");
   options.fusion.short_window_frames = args.GetInt("--short-window");
+  options.fusion.max_rerenders_per_solve = args.GetInt("--max-rerenders");
   options.fusion.optimize = !args.Has("--no-optimize");
-  options.fusion.rerender_settled_frames = args.Has("--settled-rerenders");
+  // A recorded flight is a product, not a live feed: every frame on disk where the solution
+  // puts it (the library's default is off, for the publish latency of a live feed).
+  options.fusion.rerender_settled_frames = !args.Has("--no-settled-rerenders");
   options.planned_extent = !args.Has("--no-planned-extent");
   options.registration_threads = args.GetInt("--registration-threads");
   options.max_cached_tiles = args.GetInt("--max-cached-tiles");
@@ -224,6 +231,7 @@ int RunRun(int argc, char** argv) {
         {"mean_solve_ms", s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
         {"rerendered_frames", s.fusion.rerendered_frames},
         {"settled_rerenders", s.fusion.settled_rerenders},
+        {"settled_rerenders_on_leaving", s.fusion.settled_rerenders_on_leaving},
         {"settled_left_lagging", s.fusion.settled_left_lagging},
         {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
         {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},

@@ -276,6 +276,7 @@ class MapFusion::Impl {
     }
     if (options_.compensate_gain) FitGain(radiometric, &placement.gain, &placement.offset);
 
+    std::vector<Due> due;  // Settled frames leaving the fusion with their paint lagging.
     {
       std::lock_guard<std::mutex> lock(mu_);
       frame->slot = base_slot_ + placements_.size();
@@ -300,7 +301,16 @@ class MapFusion::Impl {
         const bool unrefined = options_.optimize && oldest_placement.optimized_times == 0;
         if (unrefined && window_.size() <= hard) break;
         if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
-        if (PaintLagsFinal(*window_.front())) stats_.settled_left_lagging += 1;
+        Held& leaving = *window_.front();
+        if (PaintLagsFinal(leaving)) {
+          // Its last chance: re-rendered here, after the lock, unless a solve has picked it
+          // (that solve then re-renders it whatever its budget and the output's backlog).
+          leaving.left_fusion = true;
+          if (!leaving.settled_claimed) {
+            due.push_back(
+                {window_.front(), oldest_placement, ImageRef{leaving.data.image, leaving.spilled}});
+          }
+        }
         window_.pop_front();
       }
       const int64_t oldest = window_.front()->data.index;
@@ -312,7 +322,14 @@ class MapFusion::Impl {
     }
     Render(frame->data.image, frame->data.image_clip, placement, &foreground_);
     if (sink_) sink_->FramePlaced(placement);
+    {
+      // From now on a solve may re-render it (one that finished before this paint would have
+      // been overwritten by it, and the frame's `rendered` would not say so).
+      std::lock_guard<std::mutex> lock(mu_);
+      frame->painted = true;
+    }
     if (options_.optimize) cv_.notify_one();
+    for (const Due& d : due) RenderSettled(d.frame, d.placement, d.image, &foreground_);
     SpillImages();
     return placement;
   }
@@ -441,6 +458,12 @@ class MapFusion::Impl {
     size_t slot = 0;
     std::vector<cv::Point2f> pos_footprint;
     FramePlacement rendered;  // As last painted (under mu_): re-renders compare with it.
+    // Under mu_: the producer's first paint is done (solves re-render only painted frames);
+    // a solve has chosen this settled frame for a re-render and not yet done or dropped it;
+    // the frame has left the window (the held frames) while its paint lagged.
+    bool painted = false;
+    bool settled_claimed = false;
+    bool left_fusion = false;
     // The image on disk instead of in data.image (images_in_memory); written by the producer
     // under mu_.
     std::shared_ptr<const ImageSpill::Handle> spilled;
@@ -449,6 +472,12 @@ class MapFusion::Impl {
   struct ImageRef {
     cv::Mat image;
     std::shared_ptr<const ImageSpill::Handle> spilled;
+  };
+  // A settled frame that leaves the fusion with its paint lagging, re-rendered by Push.
+  struct Due {
+    std::shared_ptr<Held> frame;
+    FramePlacement placement;
+    ImageRef image;
   };
   struct Pair {
     std::shared_ptr<Held> base, templ;
@@ -491,6 +520,26 @@ class MapFusion::Impl {
     const FramePlacement& live = PlacementAt(f.slot);
     return live.optimized_times > 0 &&
            PaintLag(f.rendered, live, nullptr, options_.settled_rerender_threshold_px) > 1.0;
+  }
+
+  // Re-renders a settled frame leaving the fusion at its final placement (Push, after the
+  // lock). A frame whose image cannot be read back keeps its lagging paint, counted.
+  void RenderSettled(const std::shared_ptr<Held>& frame, const FramePlacement& placement,
+                     const ImageRef& ref, Renderer* renderer) {
+    const cv::Mat image = ImageOf(ref);
+    if (image.empty()) {
+      std::lock_guard<std::mutex> lock(mu_);
+      stats_.settled_left_lagging += 1;
+      return;
+    }
+    Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      frame->rendered = placement;
+      stats_.settled_rerenders += 1;
+      stats_.settled_rerenders_on_leaving += 1;
+    }
+    if (sink_) sink_->FramePlaced(placement);
   }
 
   // Frees the images of held frames that are no registration candidate any more and that no
@@ -606,6 +655,7 @@ class MapFusion::Impl {
     placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
     placement.note += note;
     frame->rendered = placement;
+    frame->painted = true;  // By the run that recorded it.
     window_.push_back(frame);
     for (Pair& p : new_pairs) pairs_.push_back(std::move(p));
     return placement;
@@ -1077,7 +1127,9 @@ class MapFusion::Impl {
         // Compared with the frame as painted, so small moves that add up are re-rendered too.
         double shift = 0.0;
         const double score = PaintLag(f->rendered, live, &shift);
-        if (score > 1.0) {
+        // A frame the producer has not painted yet is left to the next solve (its first paint
+        // would land over this re-render).
+        if (score > 1.0 && f->painted) {
           stats_.rerender_candidates += 1;
           if (shift <= 1.0) stats_.radiometric_rerenders += 1;
           candidates.emplace_back(score, moved.size());
@@ -1105,6 +1157,7 @@ class MapFusion::Impl {
           moved.emplace_back(f, PlacementAt(f->slot));
           images[f->slot] = {f->data.image, f->spilled};
           settled_slots.insert(f->slot);
+          f->settled_claimed = true;  // Push leaves it to this solve if it leaves meanwhile.
           stats_.settled_rerender_candidates += 1;
         }
       }
@@ -1130,25 +1183,38 @@ class MapFusion::Impl {
     // rewritten, their overviews too), so settled frames go only while the output is less
     // than half max_output_backlog_s behind, and the frames that moved take their turn:
     // at full load the writer keeps to the newest frames as without them.
+    // A settled frame that left the fusion (Push) while this solve held it is re-rendered
+    // whatever the budget and the backlog: it has no later chance.
     const size_t budget = final_solve ? 0 : static_cast<size_t>(options_.max_rerenders_per_solve);
     size_t rendered_count = 0, settled_rendered = 0;
+    bool stopped = false;  // Budget used up or output too far behind: the rest wait.
     for (const auto& [frame, placement] : moved) {
-      if (budget > 0 && rendered_count == budget) break;
-      const double backlog_s = may_defer && sink_ ? sink_->OutputBacklogSeconds() : 0.0;
-      if (backlog_s > options_.max_output_backlog_s) break;
-      if (backlog_s > 0.5 * options_.max_output_backlog_s && settled_slots.count(frame->slot)) {
-        continue;
+      const bool settled = settled_slots.count(frame->slot) > 0;
+      bool go = false;
+      if (!stopped) {
+        stopped = budget > 0 && rendered_count >= budget;
+        const double backlog_s =
+            stopped || !may_defer || !sink_ ? 0.0 : sink_->OutputBacklogSeconds();
+        stopped = stopped || backlog_s > options_.max_output_backlog_s;
+        go = !stopped && !(settled && backlog_s > 0.5 * options_.max_output_backlog_s);
       }
+      if (settled) {
+        std::lock_guard<std::mutex> lock(mu_);
+        go = go || frame->left_fusion;
+        frame->settled_claimed = go;  // Dropped: Push re-renders it when it leaves.
+      }
+      if (!go) continue;  // Settled frames later in the list may still be due.
       const cv::Mat image = ImageOf(images[frame->slot]);
       if (!image.empty())
         Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
       {
         std::lock_guard<std::mutex> lock(mu_);
         frame->rendered = placement;
+        frame->settled_claimed = false;
       }
       if (sink_) sink_->FramePlaced(placement);
       ++rendered_count;
-      settled_rendered += settled_slots.count(frame->slot);
+      settled_rendered += settled ? 1 : 0;
     }
     {
       std::lock_guard<std::mutex> lock(mu_);

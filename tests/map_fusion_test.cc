@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
 #include <filesystem>
 #include <functional>
 #include <map>
@@ -737,24 +738,26 @@ TEST(MapFusionTest, BackgroundRerendersWaitWhileTheOutputIsBehind) {
 // against its final placement. With a re-render budget too small for what each solve moves,
 // frames that leave the solved window keep a lagging paint unless settled frames are
 // re-rendered (FusionOptions::rerender_settled_frames); with it, every frame ends within the
-// re-render threshold of where the solution puts it.
+// re-render threshold of where the solution puts it, also when the output is always behind
+// and no background solve re-renders anything (each frame is then re-rendered as it leaves).
 TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
   const Sweep s = MakeSweep(200, 6, 2.0, 0.3, 29);
   struct LastPaintSink : MosaicSink {
     std::mutex mu;
     std::map<int64_t, Eigen::Matrix3d> last;
+    double backlog_s = 0.0;
     void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
     void FramePlaced(const FramePlacement& p) override {
       std::lock_guard<std::mutex> lock(mu);
       last[p.index] = p.mosaic_from_image;
     }
-    double OutputBacklogSeconds() const override { return 0.0; }
+    double OutputBacklogSeconds() const override { return backlog_s; }
   };
   struct Outcome {
     std::vector<double> lag_px;  // Per frame: largest corner move from its last paint.
     FusionStats stats;
   };
-  auto run = [&](bool rerender_settled, double settled_threshold_px) {
+  auto run = [&](bool rerender_settled, double settled_threshold_px, double backlog_s = 0.0) {
     FusionOptions options;
     options.settled_rerender_threshold_px = settled_threshold_px;
     options.window_frames = 30;
@@ -764,6 +767,7 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
     options.compensate_gain = false;
     options.rerender_settled_frames = rerender_settled;
     LastPaintSink sink;
+    sink.backlog_s = backlog_s;
     MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 7), &sink);
     const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
     for (int64_t i = 0; i < 200; ++i) {
@@ -826,6 +830,112 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
   EXPECT_LT(settled_1px.stats.settled_rerenders, with.stats.settled_rerenders);
   EXPECT_EQ(settled_1px.stats.settled_left_lagging, 0);
   EXPECT_LE(Max(settled_1px.lag_px), 1.0 + 1e-3);
+  // The output always behind (10 s against max_output_backlog_s 0.25): background solves
+  // re-render nothing, so each frame that leaves the held frames lagging is re-rendered then
+  // (by Push), and the final solve does the rest.
+  const Outcome behind_without = run(false, 0.25, 10.0);
+  const Outcome behind = run(true, 0.25, 10.0);
+  std::printf(
+      "output behind: without settled re-renders max %.3f px, %ld frames over 0.25 px; with "
+      "them max %.3f px, %lld settled re-renders, %lld of them as the frames left, %lld frozen "
+      "lagging\n",
+      Max(behind_without.lag_px), over(behind_without, 0.25), Max(behind.lag_px),
+      static_cast<long long>(behind.stats.settled_rerenders),
+      static_cast<long long>(behind.stats.settled_rerenders_on_leaving),
+      static_cast<long long>(behind.stats.settled_left_lagging));
+  EXPECT_GT(over(behind_without, 0.25), 100);
+  EXPECT_GT(behind.stats.settled_rerenders_on_leaving, 100);
+  EXPECT_EQ(behind.stats.settled_left_lagging, 0);
+  EXPECT_LE(Max(behind.lag_px), FusionOptions().rerender_threshold_px + 1e-3);
+}
+
+// A solve that runs while the producer is still painting a new frame (its Paint blocked, as
+// by the store's back-pressure) must not re-render that frame first: the first paint would
+// then land over the re-render while the fusion takes the frame for re-rendered. Every
+// frame's first placement reported to the sink is the one Push returned.
+TEST(MapFusionTest, ASolveDoesNotRerenderAFrameBeforeItsFirstPaint) {
+  const Sweep s = MakeSweep(80, 6, 2.0, 0.3, 31);
+  constexpr int64_t kHeld = 40;  // The frame whose first paint waits.
+  struct HoldingSink : MosaicSink {
+    std::mutex mu;
+    std::condition_variable cv;
+    const MapFusion* fusion = nullptr;
+    std::thread::id producer = std::this_thread::get_id();
+    bool hold_repaints = false, repaint_held = false;
+    bool rerendered_held_frame = false;  // The held frame re-rendered before its first paint.
+    std::map<int64_t, Eigen::Matrix3d> first;
+    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {
+      std::unique_lock<std::mutex> lock(mu);
+      if (!hold_repaints || !repaint_held) return;
+      // The frame kHeld's first paint: let the held solve finish, and wait for the next one
+      // (whose window holds this frame) to publish and re-render what it will.
+      hold_repaints = false;
+      cv.notify_all();
+      const int64_t solves = fusion->stats().solves;
+      const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+      while (fusion->stats().solves == solves && std::chrono::steady_clock::now() < deadline) {
+        cv.wait_for(lock, std::chrono::milliseconds(2));
+      }
+      cv.wait_for(lock, std::chrono::seconds(2), [this] { return rerendered_held_frame; });
+    }
+    void Repaint(const cv::Mat&, const cv::Mat&, cv::Point) override {
+      std::unique_lock<std::mutex> lock(mu);
+      if (!hold_repaints) return;
+      repaint_held = true;
+      cv.notify_all();
+      cv.wait(lock, [this] { return !hold_repaints; });
+    }
+    void FramePlaced(const FramePlacement& p) override {
+      std::lock_guard<std::mutex> lock(mu);
+      if (first.count(p.index)) return;
+      first[p.index] = p.mosaic_from_image;
+      if (std::this_thread::get_id() != producer) {
+        rerendered_held_frame = true;
+        cv.notify_all();
+      }
+    }
+    double OutputBacklogSeconds() const override { return 0.0; }
+  };
+  FusionOptions options;
+  options.window_frames = 30;
+  options.short_window_frames = 0;
+  options.solve_every_frames = 1;
+  options.max_rerenders_per_solve = 0;
+  options.compensate_gain = false;
+  HoldingSink sink;
+  MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 7), &sink);
+  sink.fusion = &fusion;
+  const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+  std::map<int64_t, Eigen::Matrix3d> pushed;
+  for (int64_t i = 0; i < 80; ++i) {
+    if (i == kHeld - 1) {
+      std::lock_guard<std::mutex> lock(sink.mu);
+      sink.hold_repaints = true;  // The solve this frame starts stops in its first re-render.
+    }
+    if (i == kHeld) {
+      std::unique_lock<std::mutex> lock(sink.mu);
+      ASSERT_TRUE(
+          sink.cv.wait_for(lock, std::chrono::seconds(60), [&] { return sink.repaint_held; }))
+          << "no solve re-rendered anything after frame " << kHeld - 1;
+    }
+    FusionFrame f;
+    f.index = i;
+    f.time_s = static_cast<double>(i) * 0.04;
+    f.image = image;
+    f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+    f.prior_sqrt_information = s.prior[static_cast<size_t>(i)];
+    pushed[i] = fusion.Push(std::move(f)).mosaic_from_image;
+    if (i == kHeld) {
+      ASSERT_FALSE(sink.hold_repaints) << "frame " << kHeld << " was not held";
+    }
+  }
+  fusion.Finish();
+  EXPECT_GT(fusion.stats().rerendered_frames, 0);
+  ASSERT_EQ(sink.first.size(), pushed.size());
+  for (const auto& [index, h] : pushed) {
+    EXPECT_LT((sink.first.at(index) - h).norm(), 1e-12)
+        << "frame " << index << " was first reported at a placement other than Push's";
+  }
 }
 
 TEST(MapFusionTest, OptionsAreValidated) {

@@ -3,15 +3,18 @@
 #include <gdal_priv.h>
 #include <gtest/gtest.h>
 #include <ogr_spatialref.h>
+#include <ogrsf_frmts.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
@@ -35,6 +38,13 @@ class RunCliTest : public ::testing::Test {
     dir_ =
         (fs::temp_directory_path() / ("irmosaic_run_cli_" + std::to_string(::getpid()))).string();
     fs::remove_all(dir_);
+    WriteFlight(dir_ + "/flight", 0.0, 0.0);  // POS exact: the mosaic must sit where the truth is.
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+
+  // The test flight with the POS errors given (1 sigma) into `path`.
+  static void WriteFlight(const std::string& path, double position_sigma_m,
+                          double attitude_sigma_deg) {
     SynthOptions options;
     options.ground_path = testing::SamplePath("sample_flight/ground_naip_2019.tif");
     options.seed = 5;
@@ -42,22 +52,24 @@ class RunCliTest : public ::testing::Test {
     options.altitude_m = 600;
     options.heading_deg = 80;
     options.frames_per_sweep = 8;
-    options.position_sigma_m = 0.0;  // POS exact: the mosaic must sit where the truth is.
-    options.attitude_sigma_deg = 0.0;
+    options.position_sigma_m = position_sigma_m;
+    options.attitude_sigma_deg = attitude_sigma_deg;
     options.sensor.gain_drift = false;
     options.sensor.noise_psnr_db = 35.0;
     FlightSimulator sim(options);
-    sim.WriteFlight(dir_ + "/flight");
+    sim.WriteFlight(path);
   }
-  static void TearDownTestSuite() { fs::remove_all(dir_); }
 
-  // Runs the CLI with `extra` arguments; returns its exit code, stderr in *log.
-  static int RunCli(const std::string& store, const std::string& extra, std::string* log) {
+  // Runs the CLI on `flight` (the test flight by default) with `extra` arguments; returns its
+  // exit code, stderr in *log.
+  static int RunCli(const std::string& store, const std::string& extra, std::string* log,
+                    std::string flight = "") {
+    if (flight.empty()) flight = dir_ + "/flight";
     const std::string log_path = store + ".log";
-    const std::string command = testing::CliPath() + " run --frames " + dir_ +
-                                "/flight/frames.csv --pos " + dir_ + "/flight/pos.csv --camera " +
-                                dir_ + "/flight/camera.json --out " + store + " " + extra +
-                                " > /dev/null 2> " + log_path;
+    const std::string command = testing::CliPath() + " run --frames " + flight +
+                                "/frames.csv --pos " + flight + "/pos.csv --camera " + flight +
+                                "/camera.json --out " + store + " " + extra + " > /dev/null 2> " +
+                                log_path;
     const int status = std::system(command.c_str());
     std::ifstream in(log_path);
     log->assign(std::istreambuf_iterator<char>(in), {});
@@ -139,6 +151,69 @@ TEST_F(RunCliTest, MosaicIsGeoreferencedWhereTheTruthIs) {
   std::printf("centre value difference: median %.0f, p90 %.0f counts\n", diffs[diffs.size() / 2],
               diffs[diffs.size() * 9 / 10]);
   EXPECT_LT(diffs[diffs.size() / 2], 1500.0);
+}
+
+// The store records where each frame is painted (frames.gpkg: footprints, rewritten at each
+// re-render). `irmosaic run` re-renders the frames that left the optimization window where the
+// solution put them, so with a short window every footprint is the solution's
+// (placements.json) within the re-render threshold, 0.25 px; without (--no-settled-rerenders)
+// frames keep earlier placements on disk.
+TEST_F(RunCliTest, TheStoreShowsEveryFrameWhereTheSolutionPutsIt) {
+  // Per frame: the largest corner distance (px) between its footprint in frames.gpkg and its
+  // final placement.
+  auto painted_lag = [&](const std::string& store) {
+    const Placements run = Placements::LoadJson(store + "/placements.json");
+    std::map<int64_t, Eigen::Matrix3d> placed;
+    for (const Placement& p : run.frames) placed[p.index] = p.mosaic_from_image;
+    GDALDatasetUniquePtr gpkg(
+        GDALDataset::Open((store + "/frames.gpkg").c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY));
+    std::vector<double> lag;
+    if (!gpkg || !gpkg->GetLayerByName("frames")) return lag;
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(639.5, -0.5), Eigen::Vector2d(639.5, 511.5),
+        Eigen::Vector2d(-0.5, 511.5)};
+    for (auto& feature : *gpkg->GetLayerByName("frames")) {
+      const Eigen::Matrix3d& h = placed.at(feature->GetFieldAsInteger64("frame_index"));
+      const OGRLinearRing* ring = feature->GetGeometryRef()->toPolygon()->getExteriorRing();
+      double worst = 0.0;
+      for (int c = 0; c < 4; ++c) {
+        const Eigen::Vector3d q = h * corners[c].homogeneous();
+        const Eigen::Vector2d solution_m(q.x() / q.z() * run.gsd_m, -q.y() / q.z() * run.gsd_m);
+        worst = std::max(
+            worst, (Eigen::Vector2d(ring->getX(c), ring->getY(c)) - solution_m).norm() / run.gsd_m);
+      }
+      lag.push_back(worst);
+    }
+    return lag;
+  };
+  // POS errors as in the tests (2 m, 0.3 deg): solves move frames by pixels.
+  const std::string flight = dir_ + "/pos_error_flight";
+  WriteFlight(flight, 2.0, 0.3);
+  std::string log;
+  const std::string exact = dir_ + "/settled.irmosaic", lagging = dir_ + "/unsettled.irmosaic";
+  // One re-render per background solve: the solves alone leave frames lagging.
+  const std::string options =
+      "--window 16 --short-window 0 --max-rerenders 1 --pos-sigma 2 --att-sigma 0.3";
+  ASSERT_EQ(RunCli(exact, options, &log, flight), 0) << log;
+  ASSERT_EQ(RunCli(lagging, options + " --no-settled-rerenders", &log, flight), 0) << log;
+  const std::vector<double> on = painted_lag(exact), off = painted_lag(lagging);
+  ASSERT_EQ(on.size(), 64u);
+  ASSERT_EQ(off.size(), 64u);
+  const auto over = [](const std::vector<double>& v) {
+    return std::count_if(v.begin(), v.end(), [](double x) { return x > 0.25 + 1e-3; });
+  };
+  std::printf(
+      "footprint on disk vs final placement: max %.3f px (%ld frames over 0.25 px); with "
+      "--no-settled-rerenders max %.3f px (%ld over)\n",
+      *std::max_element(on.begin(), on.end()), over(on), *std::max_element(off.begin(), off.end()),
+      over(off));
+  EXPECT_EQ(over(on), 0);
+  EXPECT_GT(over(off), 0);
+  // The run's report counts them: settled frames re-rendered, none left lagging.
+  std::ifstream report(exact + "/run_report.json");
+  const nlohmann::json doc = nlohmann::json::parse(report);
+  EXPECT_GT(doc["optimizer"]["settled_rerenders"].get<int64_t>(), 0);
+  EXPECT_EQ(doc["optimizer"]["settled_left_lagging"].get<int64_t>(), 0);
 }
 
 TEST_F(RunCliTest, ExistingStoreIsRefusedWithoutResumeOrOverwrite) {

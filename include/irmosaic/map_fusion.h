@@ -140,13 +140,15 @@ struct FusionOptions {
   double max_output_backlog_s = 0.25;
   // Frames no solve refines any more (older than the newest window_frames) whose paint lags
   // their final placement by more than settled_rerender_threshold_px (or their gain or offset
-  // by 1 %) are re-rendered by later solves: before the frames that moved, within the same
+  // by 1 %) are re-rendered: by later solves, before the frames that moved, within the same
   // max_rerenders_per_solve, oldest first, and only while the output is less than half
   // max_output_backlog_s behind; their images are held until then (up to the 2 x
-  // window_frames frames held); the final solve re-renders those still lagging. Without it the
-  // disk keeps for good what budgets and pauses left behind. Off by default: at 25 fps on 2
-  // cores it makes the finished mosaic match the solution but raises the publish latency
-  // (docs/fusion.md, "The mosaic on disk", with figures).
+  // window_frames frames held). One still lagging when it leaves the held frames is
+  // re-rendered then by Push (on the caller's thread), and the final solve re-renders those
+  // still held: every frame ends on disk at its final placement. Without it the disk keeps for
+  // good what budgets and pauses left behind. Off by default (a live feed): it costs frame
+  // rate and, at 25 fps on 2 cores, publish latency; `irmosaic run` turns it on for recorded
+  // flights (docs/fusion.md, "The mosaic on disk", with figures).
   bool rerender_settled_frames = false;
   // The move (largest corner, px) past which a settled frame is re-rendered; its gain and
   // offset as for the others.
@@ -189,10 +191,12 @@ struct FusionStats {
   int64_t radiometric_rerenders = 0;
   // Settled frames (older than the newest window_frames: no solve moves them again) whose
   // paint lagged their placement: found by solves (counted at each solve that finds them),
-  // re-rendered, and frozen before a solve re-rendered them (the disk keeps them where they
-  // were last painted).
+  // re-rendered (by solves or as they left the held frames), of those the ones re-rendered as
+  // they left, and the ones that left without (their image could not be read back; the disk
+  // keeps them where they were last painted).
   int64_t settled_rerender_candidates = 0;
   int64_t settled_rerenders = 0;
+  int64_t settled_rerenders_on_leaving = 0;
   int64_t settled_left_lagging = 0;
   // What the mosaic on disk lags behind the placements after each background solve's
   // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
