@@ -1,6 +1,7 @@
 // `irmosaic run`: a whole flight (frames + POS + camera) into a live georeferenced store.
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -206,8 +207,25 @@ int RunRun(int argc, char** argv) {
             << (elapsed > 0 ? done / elapsed : 0.0) << " frames/s)\n"
             << "run: " << s.fusion.solves << " optimizer solves, " << s.generations_published
             << " generations published, publish latency p50 " << s.publish_latency_p50_s
-            << " s p99 " << s.publish_latency_p99_s << " s\n"
-            << "run: store " << options.store_path
+            << " s p99 " << s.publish_latency_p99_s << " s\n";
+  if (options.fusion.optimize && !options.fusion.rerender_settled_frames) {
+    std::cerr << "run: frames older than the optimization window show the placement they were "
+                 "last painted at, not always their final one (--no-settled-rerenders)\n";
+  } else if (options.fusion.optimize) {
+    const int64_t rerendered = s.fusion.rerendered_frames + s.fusion.settled_rerenders_on_leaving;
+    std::cerr << "run: " << rerendered << " re-renders where the optimizer moved frames ("
+              << s.fusion.settled_rerenders << " after they left its window); ";
+    if (s.fusion.settled_left_lagging == 0) {
+      std::cerr << "every frame is on disk within "
+                << std::max(options.fusion.settled_rerender_threshold_px,
+                            options.fusion.rerender_threshold_px)
+                << " px of its final placement\n";
+    } else {
+      std::cerr << s.fusion.settled_left_lagging
+                << " frames keep an earlier placement (their images could not be read back)\n";
+    }
+  }
+  std::cerr << "run: store " << options.store_path
             << " (open mosaic.vrt or irmosaic.qlr in QGIS; irmosaic_live.qlr, with the IRMOSAIC "
                "plug-in, shows it grow live)\n";
   const nlohmann::json report = {
