@@ -63,6 +63,17 @@ inline Sweep MakeSweep(int frames, int per_sweep, double pos_sigma_m, double att
 }
 
 // RMSE (mosaic px) of a 5x5 grid of the frame's pixels placed by `h` against the truth.
+// Frame i of the sweep as the fusion takes it: POS placement and prior of pose i, 25 fps.
+inline FusionFrame SweepFrame(const Sweep& s, int64_t i, const cv::Mat& image) {
+  FusionFrame f;
+  f.index = i;
+  f.time_s = static_cast<double>(i) * 0.04;
+  f.image = image;
+  f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+  f.prior_sqrt_information = s.prior[static_cast<size_t>(i)];
+  return f;
+}
+
 inline double PlacementRmse(const Eigen::Matrix3d& h, const Eigen::Matrix3d& truth,
                             const CameraModel& camera) {
   double sum = 0.0;

@@ -30,6 +30,7 @@ using testing::PlacementRmse;
 using testing::RelativeRmse;
 using testing::SeamRmse;
 using testing::Sweep;
+using testing::SweepFrame;
 
 struct RunResult {
   std::vector<double> rmse;      // Absolute, against the truth.
@@ -48,13 +49,7 @@ RunResult RunFusion(const Sweep& s, FusionOptions options, PairRegisterFn regist
   const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
   const auto start = std::chrono::steady_clock::now();
   for (size_t i = 0; i < s.pos.size(); ++i) {
-    FusionFrame f;
-    f.index = static_cast<int64_t>(i);
-    f.time_s = i * 0.04;
-    f.image = image;
-    f.pos_mosaic_from_image = s.pos[i];
-    f.prior_sqrt_information = s.prior[i];
-    fusion.Push(std::move(f));
+    fusion.Push(SweepFrame(s, static_cast<int64_t>(i), image));
     const int64_t solves_due = static_cast<int64_t>(i + 1) / options.solve_every_frames;
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
     while (wait_for_solves && options.optimize && fusion.stats().solves < solves_due &&
@@ -771,13 +766,7 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
     MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 7), &sink);
     const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
     for (int64_t i = 0; i < 200; ++i) {
-      FusionFrame f;
-      f.index = i;
-      f.time_s = static_cast<double>(i) * 0.04;
-      f.image = image;
-      f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
-      f.prior_sqrt_information = s.prior[static_cast<size_t>(i)];
-      fusion.Push(std::move(f));
+      fusion.Push(SweepFrame(s, i, image));
       // Each solve covers the same frames however fast this machine is (up to a minute each).
       const int64_t solves_due = (i + 1) / options.solve_every_frames;
       const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
@@ -918,13 +907,7 @@ TEST(MapFusionTest, ASolveDoesNotRerenderAFrameBeforeItsFirstPaint) {
           sink.cv.wait_for(lock, std::chrono::seconds(60), [&] { return sink.repaint_held; }))
           << "no solve re-rendered anything after frame " << kHeld - 1;
     }
-    FusionFrame f;
-    f.index = i;
-    f.time_s = static_cast<double>(i) * 0.04;
-    f.image = image;
-    f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
-    f.prior_sqrt_information = s.prior[static_cast<size_t>(i)];
-    pushed[i] = fusion.Push(std::move(f)).mosaic_from_image;
+    pushed[i] = fusion.Push(SweepFrame(s, i, image)).mosaic_from_image;
     if (i == kHeld) {
       ASSERT_FALSE(sink.hold_repaints) << "frame " << kHeld << " was not held";
     }
