@@ -11,6 +11,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <deque>
 #include <exception>
 #include <filesystem>
@@ -302,14 +303,13 @@ class MapFusion::Impl {
         if (unrefined && window_.size() <= hard) break;
         if (unrefined) oldest_placement.note += "frozen unrefined (optimizer behind); ";
         Held& leaving = *window_.front();
+        leaving.left_fusion = true;
         if (PaintLagsFinal(leaving)) {
-          // Its last chance: re-rendered here, after the lock, unless a solve has picked it
-          // (that solve then re-renders it whatever its budget and the output's backlog).
-          leaving.left_fusion = true;
-          if (!leaving.settled_claimed) {
-            due.push_back(
-                {window_.front(), oldest_placement, ImageRef{leaving.data.image, leaving.spilled}});
-          }
+          // Its last chance: re-rendered here, after the lock, before this Push returns (so a
+          // resume record that counts it as frozen finds it painted). A solve that picked it
+          // passes it over from now on; one already painting it paints the same placement.
+          due.push_back(
+              {window_.front(), oldest_placement, ImageRef{leaving.data.image, leaving.spilled}});
         }
         window_.pop_front();
       }
@@ -374,6 +374,14 @@ class MapFusion::Impl {
       }
       state.frames_since_solve = frames_since_solve_;
       state.solving_through = solving_ ? PlacementAt(solving_last_slot_).index : -1;
+      for (const auto& f : window_) {
+        const FramePlacement& live = PlacementAt(f->slot);
+        if (f->rendered.mosaic_from_image != live.mosaic_from_image ||
+            f->rendered.gain != live.gain || f->rendered.offset != live.offset) {
+          state.painted.push_back(
+              {f->data.index, f->rendered.mosaic_from_image, f->rendered.gain, f->rendered.offset});
+        }
+      }
       // Frames that left the window never move again, unless a running solve still holds them
       // (the foreground got more than a window ahead of it).
       state.frozen_slots =
@@ -459,10 +467,9 @@ class MapFusion::Impl {
     std::vector<cv::Point2f> pos_footprint;
     FramePlacement rendered;  // As last painted (under mu_): re-renders compare with it.
     // Under mu_: the producer's first paint is done (solves re-render only painted frames);
-    // a solve has chosen this settled frame for a re-render and not yet done or dropped it;
-    // the frame has left the window (the held frames) while its paint lagged.
+    // the frame has left the window (the held frames; Push re-rendered it then if its paint
+    // lagged, and a solve that still moves it re-renders it whatever its budget).
     bool painted = false;
-    bool settled_claimed = false;
     bool left_fusion = false;
     // The image on disk instead of in data.image (images_in_memory); written by the producer
     // under mu_.
@@ -655,7 +662,13 @@ class MapFusion::Impl {
     placement.pos_mosaic_from_image = frame->data.pos_mosaic_from_image;
     placement.note += note;
     frame->rendered = placement;
-    frame->painted = true;  // By the run that recorded it.
+    frame->painted = true;  // By the run that recorded it, where the record says.
+    for (const FusionResumeState::Painted& p : resume_.painted) {
+      if (p.index != index) continue;
+      frame->rendered.mosaic_from_image = p.mosaic_from_image;
+      frame->rendered.gain = p.gain;
+      frame->rendered.offset = p.offset;
+    }
     window_.push_back(frame);
     for (Pair& p : new_pairs) pairs_.push_back(std::move(p));
     return placement;
@@ -1084,6 +1097,7 @@ class MapFusion::Impl {
     std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> moved;
     std::vector<std::pair<double, size_t>> candidates;  // (score, index in moved)
     std::set<size_t> settled_slots;                     // Of moved, the settled frames (see below).
+    std::set<size_t> forced_slots;  // Of moved, frames that left the fusion meanwhile.
     // Seams on disk (for the lag figures): at each pair's overlap, where the solution puts
     // the two frames against where they were painted. A move both frames share (the window
     // drifting as new POS priors join) leaves the seam as it was.
@@ -1132,7 +1146,11 @@ class MapFusion::Impl {
         if (score > 1.0 && f->painted) {
           stats_.rerender_candidates += 1;
           if (shift <= 1.0) stats_.radiometric_rerenders += 1;
-          candidates.emplace_back(score, moved.size());
+          // A frame that left the fusion while this solve ran (the caller more than a window
+          // ahead) has no later chance: first, whatever the budget and the backlog.
+          candidates.emplace_back(f->left_fusion ? std::numeric_limits<double>::infinity() : score,
+                                  moved.size());
+          if (f->left_fusion) forced_slots.insert(f->slot);
           moved.emplace_back(f, live);
         }
       }
@@ -1157,11 +1175,15 @@ class MapFusion::Impl {
           moved.emplace_back(f, PlacementAt(f->slot));
           images[f->slot] = {f->data.image, f->spilled};
           settled_slots.insert(f->slot);
-          f->settled_claimed = true;  // Push leaves it to this solve if it leaves meanwhile.
           stats_.settled_rerender_candidates += 1;
         }
       }
-      moved.insert(moved.end(), by_score.begin(), by_score.end());
+      // The forced ones (first by score) go before the settled frames.
+      const auto forced_end = std::find_if(by_score.begin(), by_score.end(), [&](const auto& m) {
+        return forced_slots.count(m.first->slot) == 0;
+      });
+      moved.insert(moved.begin(), by_score.begin(), forced_end);
+      moved.insert(moved.end(), forced_end, by_score.end());
       const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
       stats_.solves += 1;
       if (span >= static_cast<size_t>(options_.window_frames)) stats_.full_solves += 1;
@@ -1183,34 +1205,25 @@ class MapFusion::Impl {
     // rewritten, their overviews too), so settled frames go only while the output is less
     // than half max_output_backlog_s behind, and the frames that moved take their turn:
     // at full load the writer keeps to the newest frames as without them.
-    // A settled frame that left the fusion (Push) while this solve held it is re-rendered
-    // whatever the budget and the backlog: it has no later chance.
     const size_t budget = final_solve ? 0 : static_cast<size_t>(options_.max_rerenders_per_solve);
     size_t rendered_count = 0, settled_rendered = 0;
-    bool stopped = false;  // Budget used up or output too far behind: the rest wait.
     for (const auto& [frame, placement] : moved) {
+      const bool forced = forced_slots.count(frame->slot) > 0;
+      if (!forced && budget > 0 && rendered_count >= budget) break;
+      const double backlog_s = may_defer && sink_ ? sink_->OutputBacklogSeconds() : 0.0;
+      if (!forced && backlog_s > options_.max_output_backlog_s) break;
       const bool settled = settled_slots.count(frame->slot) > 0;
-      bool go = false;
-      if (!stopped) {
-        stopped = budget > 0 && rendered_count >= budget;
-        const double backlog_s =
-            stopped || !may_defer || !sink_ ? 0.0 : sink_->OutputBacklogSeconds();
-        stopped = stopped || backlog_s > options_.max_output_backlog_s;
-        go = !stopped && !(settled && backlog_s > 0.5 * options_.max_output_backlog_s);
-      }
       if (settled) {
+        if (backlog_s > 0.5 * options_.max_output_backlog_s) continue;
         std::lock_guard<std::mutex> lock(mu_);
-        go = go || frame->left_fusion;
-        frame->settled_claimed = go;  // Dropped: Push re-renders it when it leaves.
+        if (frame->left_fusion) continue;  // Push has re-rendered it (or is doing so) as it left.
       }
-      if (!go) continue;  // Settled frames later in the list may still be due.
       const cv::Mat image = ImageOf(images[frame->slot]);
       if (!image.empty())
         Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
       {
         std::lock_guard<std::mutex> lock(mu_);
         frame->rendered = placement;
-        frame->settled_claimed = false;
       }
       if (sink_) sink_->FramePlaced(placement);
       ++rendered_count;

@@ -240,8 +240,19 @@ ResumeRecord ParseResumeRecord(const nlohmann::json& doc, const std::filesystem:
   }
   const nlohmann::json& frames = doc["frames"];
   for (size_t k = 0; k < frames.size(); ++k) {
-    state.placements.push_back(ParsePlacementRecord(
-        frames[k], {manifest, 0, 0, "application.fusion.frames[" + std::to_string(k) + "]."}));
+    const SourceLocation at{manifest, 0, 0,
+                            "application.fusion.frames[" + std::to_string(k) + "]."};
+    state.placements.push_back(ParsePlacementRecord(frames[k], at));
+    if (!frames[k].contains("painted")) continue;  // Painted at its placement (or older record).
+    const nlohmann::json& painted = frames[k]["painted"];
+    SourceLocation in = at;
+    in.field += "painted.";
+    const std::string frame = "frame " + std::to_string(state.placements.back().index) + "'s ";
+    if (!painted.is_object()) RefuseRecord(in, frame + "painted placement is not an object");
+    state.painted.push_back({state.placements.back().index,
+                             RecordMatrix(painted, "h", in, frame + "painted placement"),
+                             RecordFinite(painted, "gain", in, frame + "painted gain"),
+                             RecordFinite(painted, "offset", in, frame + "painted offset")});
   }
   state.held_from = RecordInteger(doc, "held_from", top);
   state.frames_since_solve = RecordInteger(doc, "frames_since_solve", top);
@@ -728,8 +739,18 @@ class Mosaicker::Impl : public MosaicSink {
     const FusionResumeState state = fusion_->ResumeState(frozen_record_frames_);
     std::string frozen, moving;
     size_t newly_frozen = 0;
+    std::map<int64_t, const FusionResumeState::Painted*> painted;
+    for (const FusionResumeState::Painted& p : state.painted) painted[p.index] = &p;
     for (size_t k = 0; k < state.placements.size(); ++k) {
-      const std::string text = PlacementRecord(state.placements[k]).dump();
+      nlohmann::json record = PlacementRecord(state.placements[k]);
+      const auto found = painted.find(state.placements[k].index);
+      if (found != painted.end()) {
+        // Held frames only (never frozen): where the disk shows it, if not at its placement.
+        record["painted"] = {{"h", RowMajor(found->second->mosaic_from_image)},
+                             {"gain", found->second->gain},
+                             {"offset", found->second->offset}};
+      }
+      const std::string text = record.dump();
       if (state.first_slot + k < state.frozen_slots) {
         frozen += text + "\n";
         ++newly_frozen;

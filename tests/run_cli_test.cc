@@ -19,7 +19,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 #include <set>
+#include <string>
 #include <thread>
+#include <vector>
 
 #include "irmosaic/evaluator.h"
 #include "irmosaic/local_frame.h"
@@ -76,20 +78,84 @@ class RunCliTest : public ::testing::Test {
     return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   }
 
-  // Starts `irmosaic run` on the flight into `store` as a child process (stderr discarded), with
-  // `--window window` when window > 0, for a test to kill; returns its pid.
-  static pid_t StartRun(const std::string& store, int window) {
-    const std::string frames = dir_ + "/flight/frames.csv", pos = dir_ + "/flight/pos.csv",
-                      camera = dir_ + "/flight/camera.json", window_s = std::to_string(window);
+  // Starts `irmosaic run` on `flight` (the test flight by default) into `store` as a child
+  // process (stderr discarded) with `extra` arguments, for a test to kill; returns its pid.
+  static pid_t StartRun(const std::string& store, const std::vector<std::string>& extra,
+                        std::string flight = "") {
+    if (flight.empty()) flight = dir_ + "/flight";
+    std::vector<std::string> args = {"irmosaic", "run",
+                                     "--frames", flight + "/frames.csv",
+                                     "--pos",    flight + "/pos.csv",
+                                     "--camera", flight + "/camera.json",
+                                     "--out",    store};
+    args.insert(args.end(), extra.begin(), extra.end());
+    std::vector<char*> argv;
+    for (std::string& a : args) argv.push_back(a.data());
+    argv.push_back(nullptr);
     const pid_t child = fork();
     if (child == 0) {
       std::freopen("/dev/null", "w", stderr);
-      execl(testing::CliPath().c_str(), "irmosaic", "run", "--frames", frames.c_str(), "--pos",
-            pos.c_str(), "--camera", camera.c_str(), "--out", store.c_str(),
-            window > 0 ? "--window" : nullptr, window_s.c_str(), nullptr);
+      execv(testing::CliPath().c_str(), argv.data());
       _exit(127);
     }
     return child;
+  }
+  // The same with `--window window` when window > 0.
+  static pid_t StartRun(const std::string& store, int window) {
+    return StartRun(store, window > 0 ? std::vector<std::string>{"--window", std::to_string(window)}
+                                      : std::vector<std::string>{});
+  }
+
+  // Waits (up to 2 minutes) until the store's published state is past frame `index`, then
+  // kills `child` with SIGKILL; returns the last frame published then.
+  static int64_t KillAfterPublished(pid_t child, const std::string& store, int64_t index) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+    int64_t last_index = -1;
+    while (std::chrono::steady_clock::now() < deadline) {
+      std::ifstream in(store + "/manifest.json");
+      if (in) {
+        const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
+        if (m.is_object() && m.contains("application") && m["application"].is_object() &&
+            m["application"].contains("last_index")) {
+          last_index = m["application"]["last_index"].get<int64_t>();
+        }
+      }
+      if (last_index >= index) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    kill(child, SIGKILL);
+    int status = 0;
+    waitpid(child, &status, 0);
+    return last_index;
+  }
+
+  // Per frame: the largest corner distance (px) between its footprint in frames.gpkg and its
+  // final placement.
+  static std::vector<double> FootprintLagPx(const std::string& store, std::string placed_in = "") {
+    if (placed_in.empty()) placed_in = store;
+    const Placements run = Placements::LoadJson(placed_in + "/placements.json");
+    std::map<int64_t, Eigen::Matrix3d> placed;
+    for (const Placement& p : run.frames) placed[p.index] = p.mosaic_from_image;
+    GDALDatasetUniquePtr gpkg(
+        GDALDataset::Open((store + "/frames.gpkg").c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY));
+    std::vector<double> lag;
+    if (!gpkg || !gpkg->GetLayerByName("frames")) return lag;
+    const std::array<Eigen::Vector2d, 4> corners = {
+        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(639.5, -0.5), Eigen::Vector2d(639.5, 511.5),
+        Eigen::Vector2d(-0.5, 511.5)};
+    for (auto& feature : *gpkg->GetLayerByName("frames")) {
+      const Eigen::Matrix3d& h = placed.at(feature->GetFieldAsInteger64("frame_index"));
+      const OGRLinearRing* ring = feature->GetGeometryRef()->toPolygon()->getExteriorRing();
+      double worst = 0.0;
+      for (int c = 0; c < 4; ++c) {
+        const Eigen::Vector3d q = h * corners[c].homogeneous();
+        const Eigen::Vector2d solution_m(q.x() / q.z() * run.gsd_m, -q.y() / q.z() * run.gsd_m);
+        worst = std::max(
+            worst, (Eigen::Vector2d(ring->getX(c), ring->getY(c)) - solution_m).norm() / run.gsd_m);
+      }
+      lag.push_back(worst);
+    }
+    return lag;
   }
 
   static std::string dir_;
@@ -159,33 +225,6 @@ TEST_F(RunCliTest, MosaicIsGeoreferencedWhereTheTruthIs) {
 // (placements.json) within the re-render threshold, 0.25 px; without (--no-settled-rerenders)
 // frames keep earlier placements on disk.
 TEST_F(RunCliTest, TheStoreShowsEveryFrameWhereTheSolutionPutsIt) {
-  // Per frame: the largest corner distance (px) between its footprint in frames.gpkg and its
-  // final placement.
-  auto painted_lag = [&](const std::string& store) {
-    const Placements run = Placements::LoadJson(store + "/placements.json");
-    std::map<int64_t, Eigen::Matrix3d> placed;
-    for (const Placement& p : run.frames) placed[p.index] = p.mosaic_from_image;
-    GDALDatasetUniquePtr gpkg(
-        GDALDataset::Open((store + "/frames.gpkg").c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY));
-    std::vector<double> lag;
-    if (!gpkg || !gpkg->GetLayerByName("frames")) return lag;
-    const std::array<Eigen::Vector2d, 4> corners = {
-        Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(639.5, -0.5), Eigen::Vector2d(639.5, 511.5),
-        Eigen::Vector2d(-0.5, 511.5)};
-    for (auto& feature : *gpkg->GetLayerByName("frames")) {
-      const Eigen::Matrix3d& h = placed.at(feature->GetFieldAsInteger64("frame_index"));
-      const OGRLinearRing* ring = feature->GetGeometryRef()->toPolygon()->getExteriorRing();
-      double worst = 0.0;
-      for (int c = 0; c < 4; ++c) {
-        const Eigen::Vector3d q = h * corners[c].homogeneous();
-        const Eigen::Vector2d solution_m(q.x() / q.z() * run.gsd_m, -q.y() / q.z() * run.gsd_m);
-        worst = std::max(
-            worst, (Eigen::Vector2d(ring->getX(c), ring->getY(c)) - solution_m).norm() / run.gsd_m);
-      }
-      lag.push_back(worst);
-    }
-    return lag;
-  };
   // POS errors as in the tests (2 m, 0.3 deg): solves move frames by pixels.
   const std::string flight = dir_ + "/pos_error_flight";
   WriteFlight(flight, 2.0, 0.3);
@@ -196,7 +235,7 @@ TEST_F(RunCliTest, TheStoreShowsEveryFrameWhereTheSolutionPutsIt) {
       "--window 16 --short-window 0 --max-rerenders 1 --pos-sigma 2 --att-sigma 0.3";
   ASSERT_EQ(RunCli(exact, options, &log, flight), 0) << log;
   ASSERT_EQ(RunCli(lagging, options + " --no-settled-rerenders", &log, flight), 0) << log;
-  const std::vector<double> on = painted_lag(exact), off = painted_lag(lagging);
+  const std::vector<double> on = FootprintLagPx(exact), off = FootprintLagPx(lagging);
   ASSERT_EQ(on.size(), 64u);
   ASSERT_EQ(off.size(), 64u);
   const auto over = [](const std::vector<double>& v) {
@@ -305,25 +344,8 @@ TEST_F(RunCliTest, KillNineThenResumeWithAShortWindowMatchesAnUninterruptedRun) 
   std::string log;
   ASSERT_EQ(RunCli(reference, "--window 16", &log), 0) << log;
   const std::string store = dir_ + "/killed16.irmosaic";
-  const pid_t child = StartRun(store, 16);
   // Kill once the published state is past frame 32 (two windows frozen behind it).
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  int64_t last_index = -1;
-  while (std::chrono::steady_clock::now() < deadline) {
-    std::ifstream in(store + "/manifest.json");
-    if (in) {
-      const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
-      if (m.is_object() && m.contains("application") && m["application"].is_object() &&
-          m["application"].contains("last_index")) {
-        last_index = m["application"]["last_index"].get<int64_t>();
-      }
-    }
-    if (last_index >= 32) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
-  kill(child, SIGKILL);
-  int status = 0;
-  waitpid(child, &status, 0);
+  const int64_t last_index = KillAfterPublished(StartRun(store, 16), store, 32);
   ASSERT_GE(last_index, 32) << "the run published too little before the deadline";
   std::printf("killed with frames 0-%lld published\n", static_cast<long long>(last_index));
   ASSERT_EQ(RunCli(store, "--resume --window 16", &log), 0) << log;

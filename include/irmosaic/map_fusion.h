@@ -246,6 +246,16 @@ struct FusionResumeState {
   std::vector<Pair> pairs;         // Pairs still in use (each one's template frame is held).
   int64_t frames_since_solve = 0;  // Frames pushed since the last solve took its snapshot.
   int64_t solving_through = -1;    // Newest frame of a solve running at that moment, or -1.
+  // Held frames last painted elsewhere than at their placement in `placements` (a re-render
+  // not yet done): where. A resumed run takes a replayed frame as painted there, so one whose
+  // paint lagged at the record is still re-rendered (settled re-renders; docs/fusion.md).
+  struct Painted {
+    int64_t index = -1;
+    Eigen::Matrix3d mosaic_from_image = Eigen::Matrix3d::Identity();
+    double gain = 1.0;
+    double offset = 0.0;
+  };
+  std::vector<Painted> painted;
 
   // Oldest frame a replay must push again: held_from, or an older base of a pair in use
   // (-1: nothing to replay).
