@@ -106,20 +106,26 @@ class RunCliTest : public ::testing::Test {
                                       : std::vector<std::string>{});
   }
 
+  // The last frame the store's published state holds, or `otherwise` (no manifest yet, or
+  // one being replaced).
+  static int64_t PublishedLastIndex(const std::string& store, int64_t otherwise) {
+    std::ifstream in(store + "/manifest.json");
+    if (!in) return otherwise;
+    const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
+    if (m.is_object() && m.contains("application") && m["application"].is_object() &&
+        m["application"].contains("last_index")) {
+      return m["application"]["last_index"].get<int64_t>();
+    }
+    return otherwise;
+  }
+
   // Waits (up to 2 minutes) until the store's published state is past frame `index`, then
   // kills `child` with SIGKILL; returns the last frame published then.
   static int64_t KillAfterPublished(pid_t child, const std::string& store, int64_t index) {
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
     int64_t last_index = -1;
     while (std::chrono::steady_clock::now() < deadline) {
-      std::ifstream in(store + "/manifest.json");
-      if (in) {
-        const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
-        if (m.is_object() && m.contains("application") && m["application"].is_object() &&
-            m["application"].contains("last_index")) {
-          last_index = m["application"]["last_index"].get<int64_t>();
-        }
-      }
+      last_index = PublishedLastIndex(store, last_index);
       if (last_index >= index) break;
       std::this_thread::sleep_for(std::chrono::milliseconds(10));
     }
@@ -280,14 +286,7 @@ TEST_F(RunCliTest, KillNineThenResumeMatchesAnUninterruptedRun) {
   bool ended_by_itself = false;
   int status = 0;
   while (std::chrono::steady_clock::now() < deadline) {
-    std::ifstream in(store + "/manifest.json");
-    if (in) {
-      const nlohmann::json m = nlohmann::json::parse(in, nullptr, false);
-      if (m.is_object() && m.contains("application") && m["application"].is_object() &&
-          m["application"].contains("last_index")) {
-        last_index = m["application"]["last_index"].get<int64_t>();
-      }
-    }
+    last_index = PublishedLastIndex(store, last_index);
     if (last_index >= 15) break;
     if (waitpid(child, &status, WNOHANG) == child) {
       ended_by_itself = true;
