@@ -729,6 +729,33 @@ TEST(MapFusionTest, BackgroundRerendersWaitWhileTheOutputIsBehind) {
   }
 }
 
+// A sink that keeps each frame's last painted placement (what the disk shows of it), with
+// the output backlog it reports set by the test.
+struct LastPaintSink : MosaicSink {
+  std::mutex mu;
+  std::map<int64_t, Eigen::Matrix3d> last;
+  double backlog_s = 0.0;
+  void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+  void FramePlaced(const FramePlacement& p) override {
+    std::lock_guard<std::mutex> lock(mu);
+    last[p.index] = p.mosaic_from_image;
+  }
+  double OutputBacklogSeconds() const override { return backlog_s; }
+};
+
+// Largest move of a frame's outer corners between two placements, mosaic px.
+double CornerLagPx(const Eigen::Matrix3d& painted, const Eigen::Matrix3d& placed,
+                   const CameraModel& camera) {
+  double lag = 0.0;
+  for (const Eigen::Vector2d& c :
+       {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(camera.width - 0.5, -0.5),
+        Eigen::Vector2d(-0.5, camera.height - 0.5),
+        Eigen::Vector2d(camera.width - 0.5, camera.height - 0.5)}) {
+    lag = std::max(lag, (ApplyHomography(painted, c) - ApplyHomography(placed, c)).norm());
+  }
+  return lag;
+}
+
 // The mosaic as painted against the solution: a frame's last paint (what the disk shows)
 // against its final placement. With a re-render budget too small for what each solve moves,
 // frames that leave the solved window keep a lagging paint unless settled frames are
@@ -737,17 +764,6 @@ TEST(MapFusionTest, BackgroundRerendersWaitWhileTheOutputIsBehind) {
 // and no background solve re-renders anything (each frame is then re-rendered as it leaves).
 TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
   const Sweep s = MakeSweep(200, 6, 2.0, 0.3, 29);
-  struct LastPaintSink : MosaicSink {
-    std::mutex mu;
-    std::map<int64_t, Eigen::Matrix3d> last;
-    double backlog_s = 0.0;
-    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
-    void FramePlaced(const FramePlacement& p) override {
-      std::lock_guard<std::mutex> lock(mu);
-      last[p.index] = p.mosaic_from_image;
-    }
-    double OutputBacklogSeconds() const override { return backlog_s; }
-  };
   struct Outcome {
     std::vector<double> lag_px;  // Per frame: largest corner move from its last paint.
     FusionStats stats;
@@ -778,16 +794,7 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
     Outcome out;
     out.stats = fusion.stats();
     for (const FramePlacement& p : fusion.Placements()) {
-      const Eigen::Matrix3d& painted = sink.last.at(p.index);
-      double lag = 0.0;
-      for (const Eigen::Vector2d& c :
-           {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(s.camera.width - 0.5, -0.5),
-            Eigen::Vector2d(-0.5, s.camera.height - 0.5),
-            Eigen::Vector2d(s.camera.width - 0.5, s.camera.height - 0.5)}) {
-        lag = std::max(
-            lag, (ApplyHomography(painted, c) - ApplyHomography(p.mosaic_from_image, c)).norm());
-      }
-      out.lag_px.push_back(lag);
+      out.lag_px.push_back(CornerLagPx(sink.last.at(p.index), p.mosaic_from_image, s.camera));
     }
     return out;
   };
@@ -843,16 +850,6 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
 // record was taken is still re-rendered where the solution puts it.
 TEST(MapFusionTest, AResumedFusionRerendersTheFramesWhosePaintLaggedAtTheRecord) {
   const Sweep s = MakeSweep(64, 6, 2.0, 0.3, 37);
-  struct LastPaintSink : MosaicSink {
-    std::mutex mu;
-    std::map<int64_t, Eigen::Matrix3d> last;
-    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
-    void FramePlaced(const FramePlacement& p) override {
-      std::lock_guard<std::mutex> lock(mu);
-      last[p.index] = p.mosaic_from_image;
-    }
-    double OutputBacklogSeconds() const override { return 0.0; }
-  };
   FusionOptions options;
   options.window_frames = 16;
   options.short_window_frames = 0;
@@ -895,15 +892,7 @@ TEST(MapFusionTest, AResumedFusionRerendersTheFramesWhosePaintLaggedAtTheRecord)
   double worst = 0.0;
   int over = 0;
   for (const FramePlacement& p : resumed.Placements()) {
-    double lag = 0.0;
-    for (const Eigen::Vector2d& c :
-         {Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(s.camera.width - 0.5, -0.5),
-          Eigen::Vector2d(-0.5, s.camera.height - 0.5),
-          Eigen::Vector2d(s.camera.width - 0.5, s.camera.height - 0.5)}) {
-      lag = std::max(
-          lag, (ApplyHomography(disk.last.at(p.index), c) - ApplyHomography(p.mosaic_from_image, c))
-                   .norm());
-    }
+    const double lag = CornerLagPx(disk.last.at(p.index), p.mosaic_from_image, s.camera);
     worst = std::max(worst, lag);
     over += lag > options.settled_rerender_threshold_px + 1e-3 ? 1 : 0;
   }
