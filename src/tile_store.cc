@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <bitset>
 #include <cerrno>
 #include <chrono>
@@ -365,7 +366,9 @@ struct TileStore::Impl {
   int64_t failed_generation = 0;  // Last generation whose publish failed.
   std::string last_error;
   bool stop = false;
-  bool closing = false;         // Close() asked for the last publish: nothing may be deferred.
+  // Close() asked for the last publish: nothing may be deferred. Atomic: an overview slice reads
+  // it with the mutex released (FinishOverviewCycle).
+  std::atomic<bool> closing{false};
   bool secondary_owed = false;  // Overviews or frames.gpkg were deferred by a publish.
   bool closed = false;          // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
