@@ -435,6 +435,18 @@ std::string ManifestToJson(const Manifest& manifest) {
   const TileBounds bounds = manifest.levels.empty() ? TileBounds{} : manifest.levels[0].bounds();
   const bool painted = !manifest.levels.empty() && !manifest.levels[0].empty();
   const double t = manifest.tile_size, gsd = manifest.georef.gsd_m;
+  json pending = json::array();
+  for (const FrameRecord& r : manifest.frames_pending) {
+    json footprint = json::array();
+    for (const Eigen::Vector2d& c : r.footprint_m) footprint.push_back({c.x(), c.y()});
+    pending.push_back({{"index", r.index},
+                       {"time_s", r.time_s},
+                       {"footprint_m", footprint},
+                       {"pos_only", r.pos_only},
+                       {"residual_px", r.residual_px},
+                       {"inliers", r.inliers},
+                       {"status", r.status}});
+  }
   json j = {
       {"format", kFormatName},
       {"format_version", kFormatVersion},
@@ -457,7 +469,8 @@ std::string ManifestToJson(const Manifest& manifest) {
         {"layer", "frames"},
         {"count", manifest.frame_count},
         {"time_min_s", manifest.time_min_s},
-        {"time_max_s", manifest.time_max_s}}},
+        {"time_max_s", manifest.time_max_s},
+        {"pending", pending}}},
       {"overview_vrts", manifest.overview_vrts},
       {"display_range", manifest.display_hi > manifest.display_lo
                             ? nlohmann::json{manifest.display_lo, manifest.display_hi}
@@ -579,6 +592,32 @@ constexpr int64_t kMaxBlockIndex = (int64_t{1} << 40) / kVrtBlockTiles;
                               const fs::path& path) {
   throw InputError({path.string(), 0, 0, field}, problem,
                    "restore the store or start a new one (--overwrite)");
+}
+
+// manifest.json's frames.pending (stores written before 2026-12-06 have none).
+std::vector<FrameRecord> ReadPendingRecords(const nlohmann::json& pending, const fs::path& path) {
+  if (!pending.is_array()) RefuseField("frames.pending", "frames.pending is not an array", path);
+  std::vector<FrameRecord> records;
+  for (const nlohmann::json& r : pending) {
+    FrameRecord record;
+    record.index = InRange(WholeNumber(r.at("index"), "frames.pending index", path), 0,
+                           int64_t{1} << 53, "frames.pending index", path);
+    record.time_s = r.at("time_s").get<double>();
+    const nlohmann::json& footprint = r.at("footprint_m");
+    if (!footprint.is_array() || footprint.size() != 4) {
+      RefuseField("frames.pending", "a footprint is not 4 corners", path);
+    }
+    for (size_t k = 0; k < 4; ++k) {
+      record.footprint_m[k] = {footprint[k].at(0).get<double>(), footprint[k].at(1).get<double>()};
+    }
+    record.pos_only = r.at("pos_only").get<bool>();
+    record.residual_px = r.at("residual_px").get<double>();
+    record.inliers = static_cast<int>(InRange(WholeNumber(r.at("inliers"), "inliers", path), 0,
+                                              int64_t{1} << 30, "inliers", path));
+    record.status = r.at("status").get<std::string>();
+    records.push_back(std::move(record));
+  }
+  return records;
 }
 
 void CountTiles(int64_t added, int64_t* total, const std::string& field, const fs::path& path) {
@@ -738,6 +777,7 @@ Manifest ReadManifest(const fs::path& path) {
     m.frame_count = frames.contains("count") ? WholeNumber(frames["count"], "count", path) : 0;
     m.time_min_s = frames.value("time_min_s", 0.0);
     m.time_max_s = frames.value("time_max_s", 0.0);
+    if (frames.contains("pending")) m.frames_pending = ReadPendingRecords(frames["pending"], path);
     m.overview_vrts = j.value("overview_vrts", std::vector<std::string>{});
     if (j.contains("display_range") && j["display_range"].is_array()) {
       m.display_lo = j["display_range"].at(0).get<double>();

@@ -144,6 +144,10 @@ struct Manifest {
   // The extent the writer foresees for the whole flight (level-0 pixels col_min, row_min,
   // col_max, row_max, half-open), when it knows it (TileStore::SetPlannedBoundsPx).
   std::optional<std::array<int64_t, 4>> planned_bounds_px;
+  // Frame records put before this generation and not yet in frames.gpkg (it follows every
+  // overview_interval_s): with frames.gpkg's, the records of this generation's frames. A resume
+  // puts them back; without them a kill lost the records of the last seconds' frames.
+  std::vector<FrameRecord> frames_pending;
 };
 std::string ManifestToJson(const Manifest& manifest);
 // Parses manifest.json; throws InputError naming the file if it is not a store manifest.

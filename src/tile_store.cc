@@ -937,6 +937,14 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.overview_updates_early += early ? 1 : 0;
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
+  // The records frames.gpkg does not hold yet go in the manifest (frames.pending), so that the
+  // generation names every frame it shows even if the process dies before frames.gpkg follows.
+  // A publish that writes frames.gpkg writes all of them there first.
+  std::vector<FrameRecord> frames_pending;
+  if (!secondary) {
+    frames_pending.reserve(frames.size());
+    for (const auto& [index, record] : frames) frames_pending.push_back(record);
+  }
   secondary_owed = !secondary;
   int64_t frame_count = frame_times.count();
   if (frames_time_stale) {  // Records loaded at open, or one replaced with another time.
@@ -1031,6 +1039,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     next.time_max_s = time_max;
     next.application_json = application;
     next.planned_bounds_px = planned;
+    next.frames_pending = std::move(frames_pending);
     WriteIndex(&next, generation);
     index_owed = false;
     if (range_changed) WriteQlr(next);
@@ -1247,6 +1256,13 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     for (const FrameRecord& record : store::ReadFramesGpkg(s.root / "frames.gpkg")) {
       s.frame_times.Set(record.index, record.time_s);
     }
+    // Records the published generation holds that frames.gpkg missed (the process died before
+    // frames.gpkg followed): put again, written with the next frames.gpkg update.
+    for (const FrameRecord& record : s.manifest.frames_pending) {
+      s.frame_times.Set(record.index, record.time_s);  // Times widened at the first publish.
+      s.frames[record.index] = record;
+      s.frames_changed.push_back(record);
+    }
     // Temporaries of an interrupted publish are garbage: the manifest never named them.
     for (const auto& entry : fs::recursive_directory_iterator(s.root, error)) {
       if (store::IsTemporaryName(entry.path().filename().string())) {
@@ -1299,6 +1315,11 @@ std::unique_ptr<TileStore> TileStore::OpenReadOnly(const std::string& path) {
   // Read from frames.gpkg by FrameRecords(): checked here, so a damaged store fails to open.
   for (const FrameRecord& record : store::ReadFramesGpkg(impl->root / "frames.gpkg")) {
     impl->frame_times.Set(record.index, record.time_s);
+  }
+  // The published generation's records that frames.gpkg does not hold yet.
+  for (const FrameRecord& record : impl->manifest.frames_pending) {
+    impl->frame_times.Set(record.index, record.time_s);
+    impl->frames[record.index] = record;
   }
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }

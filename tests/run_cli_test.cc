@@ -42,7 +42,9 @@ class RunCliTest : public ::testing::Test {
     fs::remove_all(dir_);
     WriteFlight(dir_ + "/flight", 0.0, 0.0);  // POS exact: the mosaic must sit where the truth is.
   }
-  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static void TearDownTestSuite() {
+    if (!std::getenv("IRMOSAIC_KEEP")) fs::remove_all(dir_);
+  }
 
   // The test flight with the POS errors given (1 sigma) into `path`.
   static void WriteFlight(const std::string& path, double position_sigma_m,
@@ -363,6 +365,35 @@ TEST_F(RunCliTest, KillNineThenResumeWithAShortWindowMatchesAnUninterruptedRun) 
   EXPECT_EQ(score.frames_missing, 0);
   EXPECT_EQ(resumed.frames.size(), ref.frames.size());
   EXPECT_LT(worst_px, 0.5);
+}
+
+// The store after kill -9 and --resume shows every frame where the resumed run's solution puts
+// it: a record for each of the 64 frames in frames.gpkg, each footprint within the re-render
+// threshold (0.25 px) of the frame's final placement, frozen frames (left the window before the
+// kill) included. POS errors as in the tests so that solves move frames by pixels;
+// one re-render per solve so that frames leave the window lagging.
+TEST_F(RunCliTest, KillNineThenResumeLeavesEveryFrameOnDiskWhereTheSolutionPutsIt) {
+  const std::string flight = dir_ + "/pos_error_flight";
+  if (!fs::exists(flight + "/truth.json")) WriteFlight(flight, 2.0, 0.3);
+  const std::vector<std::string> options = {"--window",    "16", "--max-rerenders", "1",
+                                            "--pos-sigma", "2",  "--att-sigma",     "0.3"};
+  const std::string store = dir_ + "/killed_settled.irmosaic";
+  const int64_t last_index = KillAfterPublished(StartRun(store, options, flight), store, 32);
+  ASSERT_GE(last_index, 32) << "the run published too little before the deadline";
+  ASSERT_LT(last_index, 63) << "the run had published the whole flight: not a mid-run kill";
+  std::string joined;
+  for (const std::string& o : options) joined += " " + o;
+  std::string log;
+  ASSERT_EQ(RunCli(store, "--resume" + joined, &log, flight), 0) << log;
+  const std::vector<double> lag = FootprintLagPx(store);
+  const long over = std::count_if(lag.begin(), lag.end(), [](double x) { return x > 0.25 + 1e-3; });
+  std::printf(
+      "killed with frames 0-%lld published; after --resume: %zu records, max %.3f px from "
+      "the final placement, %ld over 0.25 px\n",
+      static_cast<long long>(last_index), lag.size(),
+      lag.empty() ? 0.0 : *std::max_element(lag.begin(), lag.end()), over);
+  EXPECT_EQ(lag.size(), 64u);
+  EXPECT_EQ(over, 0);
 }
 
 // Bad video input through the whole command: the flight's frames as an MJPEG AVI (8-bit), one
