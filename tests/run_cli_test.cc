@@ -42,9 +42,8 @@ class RunCliTest : public ::testing::Test {
     fs::remove_all(dir_);
     WriteFlight(dir_ + "/flight", 0.0, 0.0);  // POS exact: the mosaic must sit where the truth is.
   }
-  static void TearDownTestSuite() {
-    if (!std::getenv("IRMOSAIC_KEEP")) fs::remove_all(dir_);
-  }
+  // dir_ is removed with the program's other scratch files after a passing run, and kept after
+  // a failure (tests/support/temp_cleanup.cc).
 
   // The test flight with the POS errors given (1 sigma) into `path`.
   static void WriteFlight(const std::string& path, double position_sigma_m,
