@@ -447,6 +447,8 @@ std::string ManifestToJson(const Manifest& manifest) {
                        {"inliers", r.inliers},
                        {"status", r.status}});
   }
+  json owed = json::array();
+  for (const TileIndex& tile : manifest.overviews_owed) owed.push_back({tile.first, tile.second});
   json j = {
       {"format", kFormatName},
       {"format_version", kFormatVersion},
@@ -476,6 +478,7 @@ std::string ManifestToJson(const Manifest& manifest) {
                             ? nlohmann::json{manifest.display_lo, manifest.display_hi}
                             : nlohmann::json(nullptr)},
       {"levels", levels},
+      {"overviews_owed", owed},
   };
   if (painted) {
     // Whole pixels, written as JSON integers (readers accept the reals older stores hold).
@@ -788,6 +791,17 @@ Manifest ReadManifest(const fs::path& path) {
     int64_t tiles_total = 0;
     for (size_t l = 0; l < levels.size(); ++l) {
       m.levels.push_back(ReadLevelTiles(levels[l], l, format_version, path, &tiles_total));
+    }
+    if (j.contains("overviews_owed")) {
+      const nlohmann::json& owed = j["overviews_owed"];
+      if (!owed.is_array()) RefuseField("overviews_owed", "overviews_owed is not an array", path);
+      for (const nlohmann::json& tile : owed) {
+        if (!tile.is_array() || tile.size() != 2) {
+          RefuseField("overviews_owed", "an entry of overviews_owed is not [row, col]", path);
+        }
+        m.overviews_owed.emplace_back(WholeNumber(tile[0], "overviews_owed", path),
+                                      WholeNumber(tile[1], "overviews_owed", path));
+      }
     }
     if (j.contains("application") && !j["application"].is_null()) {
       m.application_json = j["application"].dump();

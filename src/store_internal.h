@@ -148,6 +148,9 @@ struct Manifest {
   // overview_interval_s): with frames.gpkg's, the records of this generation's frames. A resume
   // puts them back; without them a kill lost the records of the last seconds' frames.
   std::vector<FrameRecord> frames_pending;
+  // Level-0 tiles whose overviews may not show their latest content yet (overviews follow every
+  // overview_interval_s, in slices): a resume brings the overviews up to date from them.
+  std::vector<TileIndex> overviews_owed;
 };
 std::string ManifestToJson(const Manifest& manifest);
 // Parses manifest.json; throws InputError naming the file if it is not a store manifest.

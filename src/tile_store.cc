@@ -391,6 +391,14 @@ struct TileStore::Impl {
   // levels below are done. Paused after a failure until the next publish.
   int cycle_levels = -1;
   std::vector<std::map<TileIndex, TileImage>> cycle_owed;
+  TileSet cycle_level0;  // The level-0 tiles the update under way brings into the overviews.
+  // What the index lists as owed (manifest overviews_owed): the tiles waiting for the next
+  // overview update and those of the update under way.
+  std::vector<TileIndex> OverviewsOwed() const {
+    TileSet owed = cycle_level0;
+    for (const auto& [index, half] : overview_owed) owed.insert(index);
+    return {owed.begin(), owed.end()};
+  }
   std::vector<bool> build_whole;
   bool cycle_paused = false;
   bool slice_turn = false;      // The writer published last: a slice goes before the next publish.
@@ -604,6 +612,7 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
   const int levels = static_cast<int>(m.levels.size()) - 1;
   m.generation = generation;
   m.published_utc = store::UtcNow();
+  m.overviews_owed = OverviewsOwed();
   m.overview_vrts.clear();
   // Grown in steps (store::VrtBounds) so that the overview VRTs, named by it, stay the same
   // file over many publishes; export crops to the painted tiles.
@@ -719,7 +728,10 @@ void TileStore::Impl::StartOverviewCycle(store::Manifest* target) {
   for (int level = existing + 1; level <= levels; ++level) build_whole[level] = true;
   cycle_levels = levels;
   if (levels >= 1) {
-    for (auto& [index, half] : overview_owed) cycle_owed[1][index] = std::move(half);
+    for (auto& [index, half] : overview_owed) {
+      cycle_level0.insert(index);
+      cycle_owed[1][index] = std::move(half);
+    }
   }
   overview_owed.clear();
 }
@@ -781,6 +793,7 @@ bool TileStore::Impl::OverviewStep(store::Manifest* target, size_t max_parents, 
 void TileStore::Impl::FinishOverviewCycle(const store::Manifest& current) {
   cycle_levels = -1;
   cycle_owed.clear();
+  cycle_level0.clear();
   build_whole.clear();
   if (closing || !last_clean || Clock::now() - *last_clean >= kCleanInterval) {
     CleanStaleFiles(current);
@@ -802,6 +815,7 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
     if (done) {
       // New overview tiles become visible with the index; tiles already listed were replaced
       // in place. The generation stays: no level-0 tile changed.
+      cycle_level0.clear();  // Done: the index lists only what waits for the next update.
       if (index_owed) WriteIndex(&manifest, manifest.generation);
       index_owed = false;
       if (qlr_owed) WriteQlr(manifest);
@@ -1024,6 +1038,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       while (!OverviewStep(&next, std::numeric_limits<size_t>::max(), &bytes, &overview_written,
                            &top)) {
       }
+      cycle_level0.clear();  // Done before this index: it lists them no more.
     }
     std::vector<const TileImage*> top_images;
     for (const TileImage& image : top) top_images.push_back(&image);
@@ -1256,6 +1271,22 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
     for (const FrameRecord& record : store::ReadFramesGpkg(s.root / "frames.gpkg")) {
       s.frame_times.Set(record.index, record.time_s);
     }
+    // Overviews behind level 0 when the process ended (killed between overview updates): the
+    // tiles the index lists as owed, and listed tiles written after it (by re-render slices, or
+    // by a publish killed before its index), are brought into the overviews from their files.
+    std::error_code time_error;
+    const fs::file_time_type index_time = fs::last_write_time(manifest_path, time_error);
+    for (const TileIndex& index : s.manifest.overviews_owed) {
+      if (s.level0_on_disk.count(index)) s.overview_owed.emplace(index, TileImage{});
+    }
+    if (!time_error) {
+      for (const TileIndex& index : s.level0_on_disk.tiles()) {
+        std::error_code stat_error;
+        const fs::file_time_type t = fs::last_write_time(s.PathOf(0, index), stat_error);
+        if (!stat_error && t >= index_time) s.overview_owed.emplace(index, TileImage{});
+      }
+    }
+    s.secondary_owed = !s.overview_owed.empty();  // Even if nothing is painted again.
     // Records the published generation holds that frames.gpkg missed (the process died before
     // frames.gpkg followed): put again, written with the next frames.gpkg update.
     for (const FrameRecord& record : s.manifest.frames_pending) {

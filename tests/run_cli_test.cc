@@ -16,6 +16,7 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 #include <set>
@@ -163,6 +164,45 @@ class RunCliTest : public ::testing::Test {
       lag.push_back(worst);
     }
     return lag;
+  }
+
+  // Pixels of the store's first overview (mosaic.vrt's overview 1) that differ from the mean of
+  // the four level-0 pixels below them by more than `tolerance` counts, where all five are
+  // covered: an overview behind level 0. Returns -1 if the store has no overview.
+  static int64_t StaleOverviewPixels(const std::string& store, double tolerance = 8.0) {
+    GDALDatasetUniquePtr vrt(GDALDataset::Open((store + "/mosaic.vrt").c_str(), GDAL_OF_RASTER));
+    if (!vrt || vrt->GetRasterBand(1)->GetOverviewCount() < 1) return -1;
+    const int w = vrt->GetRasterXSize(), h = vrt->GetRasterYSize();
+    cv::Mat value(h, w, CV_32F), alpha(h, w, CV_32F);
+    GDALRasterBand* v1 = vrt->GetRasterBand(1)->GetOverview(0);
+    GDALRasterBand* a1 = vrt->GetRasterBand(2)->GetOverview(0);
+    cv::Mat value1(v1->GetYSize(), v1->GetXSize(), CV_32F), alpha1(value1.size(), CV_32F);
+    if (vrt->GetRasterBand(1)->RasterIO(GF_Read, 0, 0, w, h, value.data, w, h, GDT_Float32, 0, 0) !=
+            CE_None ||
+        vrt->GetRasterBand(2)->RasterIO(GF_Read, 0, 0, w, h, alpha.data, w, h, GDT_Float32, 0, 0) !=
+            CE_None ||
+        v1->RasterIO(GF_Read, 0, 0, value1.cols, value1.rows, value1.data, value1.cols, value1.rows,
+                     GDT_Float32, 0, 0) != CE_None ||
+        a1->RasterIO(GF_Read, 0, 0, value1.cols, value1.rows, alpha1.data, value1.cols, value1.rows,
+                     GDT_Float32, 0, 0) != CE_None) {
+      return -1;
+    }
+    double alpha_max = 0.0;
+    cv::minMaxLoc(alpha, nullptr, &alpha_max);
+    int64_t stale = 0;
+    for (int r = 0; r < value1.rows && 2 * r + 1 < h; ++r) {
+      for (int c = 0; c < value1.cols && 2 * c + 1 < w; ++c) {
+        if (alpha1.at<float>(r, c) < alpha_max) continue;
+        double sum = 0.0;
+        bool covered = true;
+        for (int k = 0; k < 4; ++k) {
+          covered = covered && alpha.at<float>(2 * r + k / 2, 2 * c + k % 2) >= alpha_max;
+          sum += value.at<float>(2 * r + k / 2, 2 * c + k % 2);
+        }
+        if (covered && std::abs(sum / 4.0 - value1.at<float>(r, c)) > tolerance) ++stale;
+      }
+    }
+    return stale;
   }
 
   static std::string dir_;
@@ -393,6 +433,12 @@ TEST_F(RunCliTest, KillNineThenResumeLeavesEveryFrameOnDiskWhereTheSolutionPutsI
       lag.empty() ? 0.0 : *std::max_element(lag.begin(), lag.end()), over);
   EXPECT_EQ(lag.size(), 64u);
   EXPECT_EQ(over, 0);
+  // The overviews show what level 0 shows (before session 32 the resume left those the kill
+  // caught between two overview updates behind, for good).
+  const int64_t stale = StaleOverviewPixels(store);
+  std::printf("overview pixels differing from level 0 by more than 8 counts: %lld\n",
+              static_cast<long long>(stale));
+  EXPECT_EQ(stale, 0);
 }
 
 // Bad video input through the whole command: the flight's frames as an MJPEG AVI (8-bit), one

@@ -794,6 +794,59 @@ TEST(TileStoreTest, ThePublishedRecordsSurviveAKillBeforeFramesGpkgFollows) {
   EXPECT_TRUE(frames["pending"].empty());  // Close() wrote frames.gpkg: nothing pending.
 }
 
+// Overviews follow level 0 every overview_interval_s (the Mosaicker's 2 s), so a process killed
+// between two overview updates left level 1 and up showing older content than level 0, and a
+// resume never brought them up to date (a CLI run killed and resumed: 2-10 of 28 level-1 tiles
+// differing from their level-0 tiles halved, by ~1000 counts). The index lists the level-0
+// tiles the overviews owe (manifest overviews_owed); a resume brings those into the overviews.
+TEST(TileStoreTest, OverviewsCatchUpAfterAKillBetweenOverviewUpdates) {
+  GDALAllRegister();
+  const fs::path dir = FreshDir("owed_overviews") / "s.irmosaic";
+  const pid_t writer = fork();
+  if (writer == 0) {
+    try {
+      TileStoreOptions options = Options(dir);  // 256-pixel tiles: 2 x 2 of them, one level-1.
+      options.overview_interval_s = 3600.0;     // Overviews at the first publish, then not.
+      auto store = TileStore::Open(options, Georef());
+      PaintSquare(store.get(), {0, 0}, 512, 1000.0);
+      store->WaitPublished(store->RequestPublish());
+      while (store->stats().overviews_pending) {  // The first update's slices.
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      }
+      PaintSquare(store.get(), {0, 0}, 512, 2000.0);
+      store->WaitPublished(store->RequestPublish());
+      kill(getpid(), SIGKILL);  // Before Close() (the store's destructor): overviews behind.
+    } catch (...) {
+      _exit(1);
+    }
+    _exit(2);
+  }
+  int status = 0;
+  waitpid(writer, &status, 0);
+  ASSERT_TRUE(WIFSIGNALED(status)) << "writer failed (status " << status << ")";
+  const auto value_at_centre = [&dir](int level) {
+    GDALDatasetUniquePtr tile(GDALDataset::Open(
+        (dir / "tiles" / std::to_string(level) / "0_0.tif").c_str(), GDAL_OF_RASTER));
+    if (!tile) return -1.0;
+    double value = 0.0;
+    if (tile->GetRasterBand(1)->RasterIO(GF_Read, 128, 128, 1, 1, &value, 1, 1, GDT_Float64, 0,
+                                         0) != CE_None) {
+      return -1.0;
+    }
+    return value;
+  };
+  // The kill came where the test means: level 0 new, level 1 still the first paint.
+  EXPECT_EQ(value_at_centre(0), 2000.0);
+  EXPECT_EQ(value_at_centre(1), 1000.0);
+  TileStoreOptions resume = Options(dir);
+  resume.mode = TileStoreOptions::Mode::kResume;
+  resume.overview_interval_s = 3600.0;
+  TileStore::Open(resume, Georef())->Close();  // Paints nothing.
+  EXPECT_EQ(value_at_centre(1), 2000.0);
+  std::ifstream in(dir / "manifest.json");
+  EXPECT_TRUE(nlohmann::json::parse(in)["overviews_owed"].empty());
+}
+
 // Bytes this process has passed to write(2) and its kin so far, all threads (/proc/self/io).
 int64_t BytesWrittenByThisProcess() {
   std::ifstream io("/proc/self/io");
@@ -1660,6 +1713,11 @@ TEST(TileStoreTest, DamagedManifestIsAnInputErrorNotACrash) {
       {"format 1, tile index 2^64 - 1", damaged([](nlohmann::json* j) {
          *j = manifest_json::AsFormat1(*j);
          (*j)["levels"][0]["tiles"] = {{18446744073709551615ULL, 0}};
+       })},
+      {"overviews_owed not an array",
+       damaged([](nlohmann::json* j) { (*j)["overviews_owed"] = "0_0"; })},
+      {"overviews_owed entry of 3 numbers", damaged([](nlohmann::json* j) {
+         (*j)["overviews_owed"] = {{0, 0, 0}};
        })},
       {"frames.pending not an array",
        damaged([](nlohmann::json* j) { (*j)["frames"]["pending"] = 3; })},
