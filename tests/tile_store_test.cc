@@ -722,6 +722,29 @@ TEST(TileStoreTest, ManifestTimeRangeFollowsTheRecordsAcrossReplacementAndResume
   store->Close();
 }
 
+// Runs `write` on a new store at `dir` (overview_interval_s 3600: overviews and frames.gpkg
+// follow the tiles at the first publish, then not) in a child process that kills itself with
+// SIGKILL when `write` returns, before Close() (the store's destructor) could bring them up to
+// date. True if the child died by that kill.
+bool WriteThenKill(const fs::path& dir, const std::function<void(TileStore*)>& write) {
+  const pid_t writer = fork();
+  if (writer == 0) {
+    try {
+      TileStoreOptions options = Options(dir);
+      options.overview_interval_s = 3600.0;
+      auto store = TileStore::Open(options, Georef());
+      write(store.get());
+      kill(getpid(), SIGKILL);
+    } catch (...) {
+      _exit(1);
+    }
+    _exit(2);
+  }
+  int status = 0;
+  waitpid(writer, &status, 0);
+  return WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL;
+}
+
 // frames.gpkg follows the tiles every overview_interval_s (the Mosaicker's 2 s), so a process
 // killed between two of its updates left frames.gpkg without the records of its last published
 // frames, and a resume did not bring them back (a CLI run killed and resumed lost up to 18 of
@@ -742,28 +765,16 @@ TEST(TileStoreTest, ThePublishedRecordsSurviveAKillBeforeFramesGpkgFollows) {
     r.status = status;
     return r;
   };
-  const pid_t writer = fork();
-  if (writer == 0) {
-    try {
-      TileStoreOptions options = Options(dir);
-      options.overview_interval_s = 3600.0;  // frames.gpkg at the first publish, then not.
-      auto store = TileStore::Open(options, Georef());
-      for (int i = 0; i < 10; ++i) store->PutFrameRecord(record(i, "registered"));
-      PaintSquare(store.get(), {0, 0}, 64, 1000.0);  // Tiles, so that overviews follow.
-      store->WaitPublished(store->RequestPublish());
-      PaintSquare(store.get(), {300, 0}, 64, 1000.0);
-      for (int i = 10; i < 20; ++i) store->PutFrameRecord(record(i, "registered"));
-      store->PutFrameRecord(record(3, "moved"));  // A re-render moved frame 3.
-      store->WaitPublished(store->RequestPublish());
-      kill(getpid(), SIGKILL);  // Before Close() (the store's destructor): frames.gpkg lags.
-    } catch (...) {
-      _exit(1);
-    }
-    _exit(2);
-  }
-  int status = 0;
-  waitpid(writer, &status, 0);
-  ASSERT_TRUE(WIFSIGNALED(status)) << "writer failed (status " << status << ")";
+  // frames.gpkg follows at the first publish, then not.
+  ASSERT_TRUE(WriteThenKill(dir, [&](TileStore* store) {
+    for (int i = 0; i < 10; ++i) store->PutFrameRecord(record(i, "registered"));
+    PaintSquare(store, {0, 0}, 64, 1000.0);  // Tiles, so that overviews follow.
+    store->WaitPublished(store->RequestPublish());
+    PaintSquare(store, {300, 0}, 64, 1000.0);
+    for (int i = 10; i < 20; ++i) store->PutFrameRecord(record(i, "registered"));
+    store->PutFrameRecord(record(3, "moved"));  // A re-render moved frame 3.
+    store->WaitPublished(store->RequestPublish());
+  }));
   const auto summary = [](const std::vector<FrameRecord>& records) {
     std::string text = std::to_string(records.size()) + " records";
     for (const FrameRecord& r : records) {
@@ -802,28 +813,16 @@ TEST(TileStoreTest, ThePublishedRecordsSurviveAKillBeforeFramesGpkgFollows) {
 TEST(TileStoreTest, OverviewsCatchUpAfterAKillBetweenOverviewUpdates) {
   GDALAllRegister();
   const fs::path dir = FreshDir("owed_overviews") / "s.irmosaic";
-  const pid_t writer = fork();
-  if (writer == 0) {
-    try {
-      TileStoreOptions options = Options(dir);  // 256-pixel tiles: 2 x 2 of them, one level-1.
-      options.overview_interval_s = 3600.0;     // Overviews at the first publish, then not.
-      auto store = TileStore::Open(options, Georef());
-      PaintSquare(store.get(), {0, 0}, 512, 1000.0);
-      store->WaitPublished(store->RequestPublish());
-      while (store->stats().overviews_pending) {  // The first update's slices.
-        std::this_thread::sleep_for(std::chrono::milliseconds(5));
-      }
-      PaintSquare(store.get(), {0, 0}, 512, 2000.0);
-      store->WaitPublished(store->RequestPublish());
-      kill(getpid(), SIGKILL);  // Before Close() (the store's destructor): overviews behind.
-    } catch (...) {
-      _exit(1);
+  // 256-pixel tiles: 2 x 2 of them, one level-1 tile; overviews at the first publish, then not.
+  ASSERT_TRUE(WriteThenKill(dir, [](TileStore* store) {
+    PaintSquare(store, {0, 0}, 512, 1000.0);
+    store->WaitPublished(store->RequestPublish());
+    while (store->stats().overviews_pending) {  // The first update's slices.
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
     }
-    _exit(2);
-  }
-  int status = 0;
-  waitpid(writer, &status, 0);
-  ASSERT_TRUE(WIFSIGNALED(status)) << "writer failed (status " << status << ")";
+    PaintSquare(store, {0, 0}, 512, 2000.0);
+    store->WaitPublished(store->RequestPublish());
+  }));
   const auto value_at_centre = [&dir](int level) {
     GDALDatasetUniquePtr tile(GDALDataset::Open(
         (dir / "tiles" / std::to_string(level) / "0_0.tif").c_str(), GDAL_OF_RASTER));
