@@ -539,7 +539,12 @@ class MapFusion::Impl {
       stats_.settled_left_lagging += 1;
       return;
     }
-    Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
+    // Painted as new, not as a refresh: its tiles go with the next publish, whose resume record
+    // counts the frame as frozen at this placement (a refresh's tiles are written in slices
+    // after that publish, and a kill in between left the frozen frame painted elsewhere for
+    // good). At the sensor's rate frames leave settled already (docs/fusion.md), so this adds
+    // to the publishes only when the writer is saturated.
+    Render(image, frame->data.image_clip, placement, renderer);
     {
       std::lock_guard<std::mutex> lock(mu_);
       frame->rendered = placement;
@@ -694,6 +699,27 @@ class MapFusion::Impl {
     // The optimizer thread is idle (no frame counted towards a solve during the replay), so the
     // interrupted solve runs here, on the same frames and from the same placements as then.
     if (options_.optimize && pending_slot != SIZE_MAX) SolveWindow(false, pending_slot);
+    // The record says where each held frame was painted, but a re-render's tiles reach the disk
+    // in the store's slices after the publish that carried the record, so a kill in between
+    // left some of them painted elsewhere. Where the disk must show the solution, every held
+    // frame is painted again at its placement, with the next publish (a window's renders).
+    if (options_.render && options_.optimize && options_.rerender_settled_frames) {
+      std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>> held;
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        for (const auto& f : window_) held.emplace_back(f, PlacementAt(f->slot));
+      }
+      for (const auto& [f, placement] : held) {
+        const cv::Mat image = ImageOf(*f);
+        if (image.empty()) continue;
+        Render(image, f->data.image_clip, placement, &foreground_);
+        {
+          std::lock_guard<std::mutex> lock(mu_);
+          f->rendered = placement;
+        }
+        if (sink_) sink_->FramePlaced(placement);
+      }
+    }
     {
       std::lock_guard<std::mutex> lock(mu_);
       frames_since_solve_ = resume_.frames_since_solve;
