@@ -7,6 +7,7 @@
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX]
 //                [--settled-rerender-threshold PX] [--settled-rerenders] [--window N]
 //                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
+//                [--max-neighbours N]
 //                [--ground-cache-mb N]
 //                [--lsm-level N] [--seed N] [--first N] [--bit-depth 8|16]
 //                [--malloc-info DIR] [--exit-before-finish]
@@ -122,6 +123,7 @@ struct Tuning {
   int short_window_frames = -1;  // FusionOptions::short_window_frames (-1: the default).
   int full_window_every = -1;    // FusionOptions::full_window_every (-1: the default).
   int registration_threads = -1;
+  int max_neighbours = -1;  // FusionOptions::max_neighbours (-1: the default).
   int optimizer_nice = -1;
   double max_output_backlog_s = -1.0;
   int writer_nice = -1;
@@ -305,6 +307,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   if (g_tuning.registration_threads > 0) {
     options.registration_threads = g_tuning.registration_threads;
   }
+  if (g_tuning.max_neighbours > 0) options.fusion.max_neighbours = g_tuning.max_neighbours;
   if (g_tuning.lsm_level >= 0) options.registration.fine.lsm_level = g_tuning.lsm_level;
   if (g_tuning.max_pair_sigma_px > 0.0) {
     options.registration.fine.max_joint_sigma_px = g_tuning.max_pair_sigma_px;
@@ -577,6 +580,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"publishes", st.publishes},
             {"overview_updates", st.overview_updates},
             {"overview_updates_early", st.overview_updates_early},
+            {"overview_updates_in_publish", st.overview_updates_in_publish},
             {"overview_slices", st.overview_slices},
             {"refresh_slices", st.refresh_slices},
             {"refresh_tiles_written", st.refresh_tiles_written},
@@ -915,6 +919,8 @@ int main(int argc, char** argv) {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
       g_tuning.registration_threads = std::stoi(value());
+    } else if (a == "--max-neighbours") {
+      g_tuning.max_neighbours = std::stoi(value());
     } else if (a == "--optimizer-nice") {
       g_tuning.optimizer_nice = std::stoi(value());
     } else if (a == "--max-output-backlog") {
@@ -974,7 +980,8 @@ int main(int argc, char** argv) {
                    "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
                    "[--settled-rerender-threshold PX] [--settled-rerenders] "
                    "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
-                   "[--registration-threads N] [--lsm-level N] [--keypoints-at-level 0|1] "
+                   "[--registration-threads N] [--max-neighbours N] [--lsm-level N] "
+                   "[--keypoints-at-level 0|1] "
                    "[--max-pair-sigma PX] "
                    "[--max-coarse-pair-sigma PX] [--wide-radius PX] "
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
@@ -1153,7 +1160,8 @@ int main(int argc, char** argv) {
               << p["overview_tiles_written"].get<int64_t>() << "), publishes "
               << p["publishes"].get<int64_t>() << " (overview updates "
               << p["overview_updates"].get<int64_t>() << ", of them early "
-              << p["overview_updates_early"].get<int64_t>() << ", in "
+              << p["overview_updates_early"].get<int64_t>() << ", "
+              << p["overview_updates_in_publish"].get<int64_t>() << " done inside a publish; "
               << p["overview_slices"].get<int64_t>() << " slices between publishes; refreshed "
               << p["refresh_tiles_written"].get<int64_t>() << " level-0 tiles in "
               << p["refresh_slices"].get<int64_t>() << " slices)\n";

@@ -38,7 +38,8 @@ namespace irmosaic {
 // (a quarter of a tile's memory), so 4 per cached tile hold what the cache does. At 1 per
 // cached tile (until session 16) a 25 fps flight with re-renders passed the bound every ~0.75 s
 // and 38 of 40 overview updates in 30 s came early instead of every overview_interval_s
-// (docs/benchmarks.md, "Session 16").
+// (docs/benchmarks.md, "Session 16"). Past it an update starts in slices; past twice it, waiting
+// and under way together, a publish does the update itself (PublishOnce).
 constexpr size_t kOwedPerCachedTile = 4;
 
 namespace fs = std::filesystem;
@@ -933,22 +934,30 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   }
   // Overviews and frames.gpkg at most every overview_interval_s after the last update ended,
   // and always when closing, or sooner when more than kOwedPerCachedTile x max_cached_tiles
-  // tiles would wait for them: the images they wait with stay in memory (a burst of re-renders,
+  // tiles wait for them: the images they wait with stay in memory (a burst of re-renders,
   // e.g. the final solve's, touches hundreds), halved, so each takes a quarter of a cached
-  // tile's memory. An update by the clock runs in slices between publishes; the others here.
-  // The bound counts the tiles owed since the last update started; those of an update under way
-  // (at most as many, a third more for its upper levels) are being worked off.
+  // tile's memory. An update runs in slices between publishes, whether the clock or the bound
+  // (counting the tiles owed since the last update started) starts it. Only when the tiles
+  // waiting, these and what an update under way still owes, pass twice the bound (slices
+  // falling behind a burst) does this publish bring the overviews up to date itself, which
+  // delays the frames it publishes: when the bound alone did that, such publishes took 0.6-0.8 s
+  // of the writer's wall time at 25 fps with settled re-renders, the publish latency's p99
+  // (docs/benchmarks.md, "Session 33").
   size_t owed = overview_owed.size();
   for (const auto& [index, image] : level0) owed += overview_owed.count(index) ? 0 : 1;
   const bool live = !closing && options.overview_interval_s > 0.0;
-  const bool due = !live || (cycle_levels < 0 &&
-                             std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
-                                 options.overview_interval_s);
-  const bool early = !due && owed > kOwedPerCachedTile * options.max_cached_tiles;
-  const bool secondary = due || early;
-  const bool synchronous = !live || early;
+  const size_t bound = kOwedPerCachedTile * options.max_cached_tiles;
+  const bool idle = cycle_levels < 0;
+  const bool by_clock =
+      idle && std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
+                  options.overview_interval_s;
+  const bool in_publish = live && owed + CycleOwedCount() > 2 * bound;
+  const bool early = live && (in_publish || (!by_clock && idle && owed > bound));
+  const bool secondary = !live || by_clock || early;
+  const bool synchronous = !live || in_publish;
   stats.overview_updates += secondary ? 1 : 0;
   stats.overview_updates_early += early ? 1 : 0;
+  stats.overview_updates_in_publish += in_publish ? 1 : 0;
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
   // The records frames.gpkg does not hold yet go in the manifest (frames.pending), so that the

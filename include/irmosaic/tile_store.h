@@ -55,8 +55,10 @@ struct TileStoreOptions {
   // With overview_interval_s > 0 an overview update runs between publishes, in slices of at
   // most this many overview tiles (a level the extent just gained is built in one): one slice
   // after each publish and more while no publish is asked for, so a frame's publish waits for
-  // one slice at most, not for the whole pyramid. Early updates (the memory bound below),
-  // overview_interval_s 0 and Close() bring the overviews up to date within their publish.
+  // one slice at most, not for the whole pyramid. An update the memory bound starts early runs
+  // in slices too; past twice that bound (Stats::overview_updates_in_publish), with
+  // overview_interval_s 0 and at Close(), the overviews are brought up to date within the
+  // publish.
   int overview_slice_tiles = 8;
   // Tiles a refresh (Paint with PaintKind::kRefresh: the optimizer's re-renders) changed, and
   // nothing new since their last write, are written between publishes, in slices of at most this
@@ -179,11 +181,14 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t overview_tiles_written = 0;  // Of those: overview tiles (levels above 0).
     int64_t bytes_written = 0;           // Bytes of tile files written.
     int64_t publishes = 0;               // Generations published by this process.
-    // Of those: publishes that brought the overviews (and frames.gpkg) up to date, by the
-    // clock (overview_interval_s) or early, when the level-0 tiles owed to them passed the
-    // bound (overview_owed_early).
+    // Of those: publishes that started bringing the overviews (and frames.gpkg) up to date,
+    // by the clock (overview_interval_s) or early, when the level-0 tiles owed to them passed
+    // 4 x max_cached_tiles; and of the early ones, those done whole inside the publish
+    // (delaying its frames) because the tiles waiting, with what an update under way still
+    // owed, passed twice that (the slices behind a burst; Close's final update not counted).
     int64_t overview_updates = 0;
     int64_t overview_updates_early = 0;
+    int64_t overview_updates_in_publish = 0;
     // Slices of overview work the writer ran between publishes (overview_slice_tiles).
     int64_t overview_slices = 0;
     bool overviews_pending = false;  // An overview update is under way or tiles wait for one.
@@ -206,9 +211,8 @@ class IRMOSAIC_EXPORT TileStore {
     size_t cached_tiles = 0;        // Level-0 tiles in memory now.
     // Frame records in memory now: those put and not yet written to frames.gpkg.
     size_t frame_records_held = 0;
-    // Tiles whose images wait in memory for an overview update, under way or next, each halved:
-    // those owed since the last update started are at most 4 x max_cached_tiles after each
-    // publish; an update under way holds at most as many again, and a third more.
+    // Tiles whose images wait in memory for an overview update, under way or next, each halved
+    // (upper levels' included): at most 8 x max_cached_tiles after each publish.
     size_t overview_owed_tiles = 0;
     size_t tiles_on_disk = 0;  // Level-0 tiles in the store.
   };
