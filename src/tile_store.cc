@@ -24,6 +24,7 @@
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
 #include <optional>
+#include <set>
 #include <thread>
 #include <unordered_map>
 
@@ -915,13 +916,32 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   cycle_paused = false;  // A slice that failed tries again after this publish.
   // 1. Snapshot what changed, under the lock (memory copies only).
   std::map<TileIndex, TileImage> level0;
-  // Refreshed tiles wait for slices, unless closing or too many wait (memory: they stay cached).
-  const bool take_refreshed = closing || refreshed_count > options.max_cached_tiles;
+  // Refreshed tiles wait for slices (they stay cached), unless closing, or more than
+  // max_cached_tiles wait: then the publish takes the least recently painted of them, enough to
+  // leave one slice fewer than the bound (the refresh slices' order). Until session 33 it took
+  // them all: 66-132 tiles, 0.2-0.3 s of the writer in one publish at 25 fps with settled
+  // re-renders, the publish latency's tail once early overview updates left it (docs/benchmarks.md,
+  // "Session 33").
+  std::set<TileIndex> refreshed_taken;
+  if (!closing && refreshed_count > options.max_cached_tiles) {
+    std::vector<std::pair<uint64_t, TileIndex>> order;
+    for (const auto& [index, tile] : cache) {
+      if (tile.refreshed && !tile.dirty) order.emplace_back(tile.last_use, index);
+    }
+    const size_t keep = options.max_cached_tiles -
+                        std::min(options.max_cached_tiles,
+                                 static_cast<size_t>(std::max(options.refresh_slice_tiles, 0)));
+    const size_t n = order.size() - std::min(order.size(), keep);
+    std::partial_sort(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(n), order.end());
+    for (size_t k = 0; k < n; ++k) refreshed_taken.insert(order[k].second);
+  }
   refresh_paused = false;
   replaced_since_publish = false;
   ++publish_epoch;
   for (auto& [index, tile] : cache) {
-    if (!tile.dirty && !(take_refreshed && tile.refreshed)) continue;
+    if (!tile.dirty && !(tile.refreshed && (closing || refreshed_taken.count(index) > 0))) {
+      continue;
+    }
     // Copy-on-write: the snapshot shares the buffers (no copy under the lock); the next Paint
     // into this tile copies them first.
     level0[index] = tile.image;

@@ -64,11 +64,13 @@ struct TileStoreOptions {
   // nothing new since their last write, are written between publishes, in slices of at most this
   // many tiles (one slice after each publish, more while no publish is asked for), in place: a
   // publish carries the tiles of new frames only, so their latency does not include a solve's
-  // burst of re-rendered tiles. More than max_cached_tiles such tiles waiting, or Close(), and
-  // the publish takes them all. 0: every publish writes every changed tile.
+  // burst of re-rendered tiles. More than max_cached_tiles such tiles waiting, and the publish
+  // takes the least recently painted of them, down to this many fewer than max_cached_tiles;
+  // Close() takes them all. 0: every publish writes every changed tile.
   int refresh_slice_tiles = 8;
-  // Memory bound: clean tiles beyond this leave memory, and overviews are brought up to date
-  // early when more than 4 times this many tiles wait for them (halved).
+  // Memory bound: clean tiles beyond this leave memory, and an overview update starts early when
+  // more than 4 times this many tiles wait for it (halved; in slices, or within the publish past
+  // 8 times, counting an update under way).
   size_t max_cached_tiles = 64;
   bool durable = false;  // fsync each file before its rename (power-loss safety).
   int writer_nice = 5;   // Writer thread's nice increment (0: same priority as the caller).
