@@ -858,7 +858,10 @@ TEST(MapFusionTest, SettledFramesAreRepaintedWhereTheSolutionPutsThem) {
 
 // A resumed fusion takes each replayed frame as painted where the resume record says
 // (FusionResumeState::painted), not at its placement: a held frame whose paint lagged when the
-// record was taken is still re-rendered where the solution puts it.
+// record was taken is still re-rendered where the solution puts it. And a record that claims
+// paints the disk never got (re-rendered tiles written after the publish carrying the record,
+// lost to a kill) leaves no frame off either: with settled re-renders, the resumed fusion
+// paints every held frame again after the replay (session 32).
 TEST(MapFusionTest, AResumedFusionRerendersTheFramesWhosePaintLaggedAtTheRecord) {
   const Sweep s = MakeSweep(64, 6, 2.0, 0.3, 37);
   FusionOptions options;
