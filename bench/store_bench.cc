@@ -268,33 +268,45 @@ double ThreadCpuMs() {
 // halved for the overview above (into pooled buffers, as the writer does). CPU ms per tile, the
 // minimum over `rounds` rounds of `count` operations each (the VM's timing noise).
 struct TileCost {
-  double write_ms = 0, read_ms = 0, halve_ms = 0;
+  double write_ms = 0, read_ms = 0, read_gdal_ms = 0, halve_ms = 0;
   int64_t bytes = 0;
 };
 
-TileCost MeasureTileCost(const cv::Mat& ground, int count, int rounds, const fs::path& dir) {
+TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int count, int rounds,
+                         const fs::path& dir) {
   namespace st = irmosaic::store;
   fs::remove_all(dir);
   fs::create_directories(dir);
   const irmosaic::LocalFrame frame(47.2, 8.5);
   st::TileWriteSettings settings;
   settings.crs_wkt = frame.CrsWkt();
+  settings.type = type;
   const int size = 512;
-  st::TileImage tile = st::EmptyTile(size, irmosaic::PixelType::kUInt16);
-  ground(cv::Rect(1000, 1000, size, size)).copyTo(tile.data);
+  st::TileImage tile = st::EmptyTile(size, type);
+  if (type == irmosaic::PixelType::kUInt16) {
+    ground(cv::Rect(1000, 1000, size, size)).copyTo(tile.data);
+  } else {  // The patch's range stretched over 8 bits.
+    cv::normalize(ground(cv::Rect(1000, 1000, size, size)), tile.data, 0, 255, cv::NORM_MINMAX,
+                  CV_8U);
+  }
   tile.alpha.setTo(255);
   double gt[6];
   st::TileGeoTransform(0.5, size, 0, {1, 2}, gt);
-  st::TilePools pools(size, irmosaic::PixelType::kUInt16, 4);  // As the writer halves.
-  TileCost best{1e30, 1e30, 1e30, 0};
+  st::TilePools pools(size, type, 4);  // As the writer halves.
+  TileCost best{1e30, 1e30, 1e30, 1e30, 0};
   const fs::path path = dir / "tile.tif";
   for (int round = 0; round < rounds; ++round) {
     double t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) best.bytes = st::WriteTileAtomic(path, tile, gt, settings);
     best.write_ms = std::min(best.write_ms, (ThreadCpuMs() - t0) / count);
     t0 = ThreadCpuMs();
-    for (int k = 0; k < count; ++k) st::ReadTile(path, size, irmosaic::PixelType::kUInt16);
+    for (int k = 0; k < count; ++k) st::ReadTile(path, size, type);
     best.read_ms = std::min(best.read_ms, (ThreadCpuMs() - t0) / count);
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) {
+      st::ReadTile(path, size, type, nullptr, st::TileDecoding::kGdal);
+    }
+    best.read_gdal_ms = std::min(best.read_gdal_ms, (ThreadCpuMs() - t0) / count);
     t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) st::HalveTile(tile, &pools);
     best.halve_ms = std::min(best.halve_ms, (ThreadCpuMs() - t0) / count);
@@ -340,7 +352,10 @@ int main(int argc, char** argv) {
   for (int existing : {1000, 15000, 90000}) {  // 90,000: an hour at 25 fps.
     frames_cost.emplace_back(existing, FramesPublishMs(existing, dir / "frames"));
   }
-  const TileCost tile_cost = MeasureTileCost(ground, 40, 5, dir / "tile_cost");
+  const TileCost tile_cost =
+      MeasureTileCost(ground, irmosaic::PixelType::kUInt16, 40, 5, dir / "tile_cost");
+  const TileCost tile_cost8 =
+      MeasureTileCost(ground, irmosaic::PixelType::kByte, 40, 5, dir / "tile_cost");
   std::vector<std::pair<int, double>> index_cost;
   for (int existing : {1000, 10000, 40000}) {
     index_cost.emplace_back(existing, IndexPublishMs(existing, dir / "index"));
@@ -393,10 +408,13 @@ int main(int argc, char** argv) {
               << " already in frames.gpkg: " << std::setprecision(1) << ms << " ms (median)\n";
     frames_json.push_back({{"existing_records", existing}, {"publish_ms_median", ms}});
   }
-  std::cout << "one 512 x 512 UInt16 tile (ZSTD 1), CPU ms on one thread: write "
-            << std::setprecision(2) << tile_cost.write_ms << " (" << tile_cost.bytes / 1024
-            << " KiB), read back " << tile_cost.read_ms << ", halve " << tile_cost.halve_ms
-            << " (minimum of 5 rounds of 40)\n";
+  for (const auto& [name, cost] : {std::pair{"UInt16", tile_cost}, std::pair{"Byte", tile_cost8}}) {
+    std::cout << "one 512 x 512 " << name << " tile (ZSTD 1), CPU ms on one thread: write "
+              << std::setprecision(2) << cost.write_ms << " (" << cost.bytes / 1024
+              << " KiB), read back " << cost.read_ms << " (through GDAL's decoding "
+              << cost.read_gdal_ms << "), halve " << cost.halve_ms
+              << " (minimum of 5 rounds of 40)\n";
+  }
   nlohmann::json index_json = nlohmann::json::array();
   for (const auto& [existing, ms] : index_cost) {
     std::cout << "writer CPU of a publish adding 1 tile to " << existing
@@ -408,6 +426,11 @@ int main(int argc, char** argv) {
                                                {"index_publish", index_json},
                                                {"tile_write_cpu_ms", tile_cost.write_ms},
                                                {"tile_read_cpu_ms", tile_cost.read_ms},
+                                               {"tile_read_gdal_cpu_ms", tile_cost.read_gdal_ms},
+                                               {"byte_tile_write_cpu_ms", tile_cost8.write_ms},
+                                               {"byte_tile_read_cpu_ms", tile_cost8.read_ms},
+                                               {"byte_tile_read_gdal_cpu_ms",
+                                                tile_cost8.read_gdal_ms},
                                                {"tile_halve_cpu_ms", tile_cost.halve_ms},
                                                {"tile_bytes", tile_cost.bytes},
                                                {"frames", frames},

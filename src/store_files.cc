@@ -6,12 +6,15 @@
 #include <gdal.h>
 #include <gdal_priv.h>
 #include <ogrsf_frmts.h>
+#include <sys/stat.h>
 #include <unistd.h>
+#include <zstd.h>
 
 #include <algorithm>
 #include <array>
 #include <atomic>
 #include <bit>
+#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -21,6 +24,10 @@
 #include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "irmosaic/error.h"
 #include "store_internal.h"
@@ -264,30 +271,223 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
   return static_cast<int64_t>(length);
 }
 
-TileImage ReadTile(const fs::path& path, int tile_size, PixelType type, TilePools* pools) {
+namespace {
+
+thread_local int64_t t_direct_tile_reads = 0;
+
+#if defined(__SSE2__)
+// Byte 15 of v in all 16 bytes.
+inline __m128i BroadcastByte15(__m128i v) {
+  const __m128i pairs = _mm_unpackhi_epi8(v, v);          // 16-bit lanes (b8 b8) .. (b15 b15)
+  const __m128i high = _mm_shufflehi_epi16(pairs, 0xFF);  // lanes 4-7: (b15 b15)
+  return _mm_unpackhi_epi64(high, high);                  // every lane
+}
+// 16-bit lane 7 of v in all 8 lanes.
+inline __m128i BroadcastLane7(__m128i v) {
+  const __m128i high = _mm_shufflehi_epi16(v, 0xFF);
+  return _mm_unpackhi_epi64(high, high);
+}
+#endif
+
+// The whole file in memory: read in one call, and GDAL then parses the same bytes the blocks are
+// decoded from, so a newer version of the tile renamed over this one meanwhile cannot mix in.
+// Returns an empty string, or what failed.
+std::string ReadWholeFile(const fs::path& path, std::vector<GByte>* bytes) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return std::strerror(errno);
+  std::string failure;
+  struct stat info {};
+  if (::fstat(fd, &info) != 0) {
+    failure = std::strerror(errno);
+  } else {
+    bytes->resize(static_cast<size_t>(info.st_size));
+    size_t done = 0;
+    while (done < bytes->size()) {
+      const ssize_t got = ::read(fd, bytes->data() + done, bytes->size() - done);
+      if (got < 0 && errno == EINTR) continue;
+      if (got <= 0) {
+        failure = got < 0 ? std::strerror(errno) : "the file ended early";
+        break;
+      }
+      done += static_cast<size_t>(got);
+    }
+  }
+  ::close(fd);
+  return failure;
+}
+
+struct ZstdContextDeleter {
+  void operator()(ZSTD_DCtx* context) const { ZSTD_freeDCtx(context); }
+};
+
+bool ParseUnsigned(const char* text, uint64_t* value) {
+  if (text == nullptr) return false;
+  const char* end = text + std::strlen(text);
+  const auto [last, error] = std::from_chars(text, end, *value);
+  return error == std::errc() && last == end;
+}
+
+// True when the dataset's samples are laid out as WriteTileAtomic writes them by default and the
+// direct decoder knows: ZSTD, horizontal predictor, one plane per band, whole bytes.
+bool IsDirectLayout(GDALDatasetH dataset, const std::vector<GByte>& file, PixelType type) {
+  const auto item = [&](const char* key) {
+    const char* value = GDALGetMetadataItem(dataset, key, "IMAGE_STRUCTURE");
+    return std::string(value ? value : "");
+  };
+  if (type != PixelType::kByte && type != PixelType::kUInt16) return false;
+  if (item("COMPRESSION") != "ZSTD" || item("PREDICTOR") != "2" || item("INTERLEAVE") != "BAND" ||
+      !item("NBITS").empty()) {
+    return false;
+  }
+  // 16-bit samples are stored in the file's byte order; the decoder takes them as they are.
+  if (type == PixelType::kUInt16 && (std::endian::native != std::endian::little ||
+                                     file.size() < 2 || file[0] != 'I' || file[1] != 'I')) {
+    return false;
+  }
+  return true;
+}
+
+// Decodes band `band_index` of a direct-layout dataset into `out` (the tile's size, CV_8U or
+// CV_16U) from the file's bytes: each block's ZSTD frame decompressed, then its rows summed back
+// (the predictor undone), the part inside the tile copied. False when anything is not as
+// expected (a block missing or out of the file, a frame that does not decompress to the block's
+// size); the caller then lets GDAL decode the tile.
+bool DecodeBandDirect(GDALDatasetH dataset, int band_index, const std::vector<GByte>& file,
+                      cv::Mat* out) {
+  GDALRasterBandH band = GDALGetRasterBand(dataset, band_index);
+  const bool wide = out->depth() == CV_16U;
+  if (band == nullptr || GDALGetRasterDataType(band) != (wide ? GDT_UInt16 : GDT_Byte)) {
+    return false;
+  }
+  int block_w = 0, block_h = 0;
+  GDALGetBlockSize(band, &block_w, &block_h);
+  if (block_w <= 0 || block_h <= 0) return false;
+  const size_t sample = wide ? 2 : 1;
+  const size_t block_bytes = static_cast<size_t>(block_w) * block_h * sample;
+  thread_local std::vector<uint8_t> block;
+  thread_local std::unique_ptr<ZSTD_DCtx, ZstdContextDeleter> context(ZSTD_createDCtx());
+  if (!context) return false;
+  block.resize(block_bytes);
+  const int rows = out->rows, cols = out->cols;
+  for (int by = 0; by * block_h < rows; ++by) {
+    for (int bx = 0; bx * block_w < cols; ++bx) {
+      char key[64];
+      uint64_t offset = 0, size = 0;
+      std::snprintf(key, sizeof(key), "BLOCK_OFFSET_%d_%d", bx, by);
+      if (!ParseUnsigned(GDALGetMetadataItem(band, key, "TIFF"), &offset)) return false;
+      std::snprintf(key, sizeof(key), "BLOCK_SIZE_%d_%d", bx, by);
+      if (!ParseUnsigned(GDALGetMetadataItem(band, key, "TIFF"), &size)) return false;
+      if (offset == 0 || size == 0 || offset > file.size() || size > file.size() - offset) {
+        return false;
+      }
+      const size_t got =
+          ZSTD_decompressDCtx(context.get(), block.data(), block_bytes, file.data() + offset, size);
+      if (ZSTD_isError(got) || got != block_bytes) return false;
+      const int x0 = bx * block_w, y0 = by * block_h;
+      const int width = std::min(block_w, cols - x0), height = std::min(block_h, rows - y0);
+      for (int r = 0; r < height; ++r) {
+        uint8_t* source = block.data() + static_cast<size_t>(r) * block_w * sample;
+        uint8_t* target = out->ptr<uint8_t>(y0 + r) + static_cast<size_t>(x0) * sample;
+        std::memcpy(target, source, static_cast<size_t>(width) * sample);
+        if (wide) {
+          UndoHorizontalDifferencing(reinterpret_cast<uint16_t*>(target), width);
+        } else {
+          UndoHorizontalDifferencing(target, width);
+        }
+      }
+    }
+  }
+  return true;
+}
+
+}  // namespace
+
+namespace {
+
+// The running sum of a row of 8- or 16-bit samples, wrapping, in place.
+template <typename T>
+void RunningSum(T* row, int n) {
+  int i = 0;
+#if defined(__SSE2__)
+  // In-register prefix sums of 16 bytes in log steps (the vector plus itself shifted by 1, 2, 4
+  // and 8 bytes for 8-bit samples, by 2, 4 and 8 bytes for 16-bit ones), plus the sum carried
+  // from before them.
+  constexpr int kLanes = 16 / sizeof(T);
+  const auto add = [](__m128i x, __m128i y) {
+    return sizeof(T) == 1 ? _mm_add_epi8(x, y) : _mm_add_epi16(x, y);
+  };
+  __m128i carry = _mm_setzero_si128();
+  for (; i + kLanes <= n; i += kLanes) {
+    __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(row + i));
+    if constexpr (sizeof(T) == 1) v = add(v, _mm_slli_si128(v, 1));
+    v = add(v, _mm_slli_si128(v, 2));
+    v = add(v, _mm_slli_si128(v, 4));
+    v = add(v, _mm_slli_si128(v, 8));
+    v = add(v, carry);
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(row + i), v);
+    carry = sizeof(T) == 1 ? BroadcastByte15(v) : BroadcastLane7(v);
+  }
+#endif
+  T sum = i > 0 ? row[i - 1] : 0;
+  for (; i < n; ++i) {
+    sum = static_cast<T>(sum + row[i]);
+    row[i] = sum;
+  }
+}
+
+}  // namespace
+
+void UndoHorizontalDifferencing(uint8_t* row, int n) { RunningSum(row, n); }
+void UndoHorizontalDifferencing(uint16_t* row, int n) { RunningSum(row, n); }
+
+int64_t DirectTileReads() { return t_direct_tile_reads; }
+
+TileImage ReadTile(const fs::path& path, int tile_size, PixelType type, TilePools* pools,
+                   TileDecoding decoding) {
+  thread_local std::vector<GByte> file;
+  const std::string read_failure = ReadWholeFile(path, &file);
+  if (!read_failure.empty()) {
+    throw OutputError("cannot read tile " + path.string() + ": " + read_failure +
+                      ". Fix: restore the file or start a new store (--overwrite)");
+  }
+  const std::string memory_path = "/vsimem/irmosaic_read_" + std::to_string(::getpid()) + "_" +
+                                  std::to_string(g_temp_counter.fetch_add(1)) + ".tif";
+  VSIFCloseL(VSIFileFromMemBuffer(memory_path.c_str(), file.data(), file.size(), FALSE));
   GdalErrorCapture capture;
   GDALDatasetH dataset =
-      GDALOpenEx(path.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY, nullptr, nullptr, nullptr);
+      GDALOpenEx(memory_path.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY, nullptr, nullptr, nullptr);
+  const auto close = [&] {
+    if (dataset) GDALClose(dataset);
+    VSIUnlink(memory_path.c_str());
+  };
   if (dataset == nullptr || GDALGetRasterXSize(dataset) != tile_size ||
       GDALGetRasterYSize(dataset) != tile_size || GDALGetRasterCount(dataset) != 2) {
-    if (dataset) GDALClose(dataset);
+    close();
     throw OutputError("cannot read tile " + path.string() + ": " +
                       (capture.failed() ? capture.message() : std::string("not a store tile")) +
                       ". Fix: restore the file or start a new store (--overwrite)");
   }
-  // GDAL fills every sample; the alpha band comes in the data type, then becomes 0/255.
+  // The alpha band comes in the data type, then becomes 0/255.
   TileImage tile = pools ? pools->Blank() : EmptyTile(tile_size, type);
   cv::Mat alpha = pools ? pools->data.Take() : cv::Mat(tile_size, tile_size, CvDepthOf(type));
-  const GDALDataType gdal_type = GdalTypeOf(type);
-  CPLErr status = GDALRasterIO(GDALGetRasterBand(dataset, 1), GF_Read, 0, 0, tile_size, tile_size,
-                               tile.data.ptr(), tile_size, tile_size, gdal_type, 0,
-                               static_cast<int>(tile.data.step[0]));
-  if (status == CE_None) {
-    status = GDALRasterIO(GDALGetRasterBand(dataset, 2), GF_Read, 0, 0, tile_size, tile_size,
-                          alpha.ptr(), tile_size, tile_size, gdal_type, 0,
-                          static_cast<int>(alpha.step[0]));
+  CPLErr status = CE_None;
+  if (decoding == TileDecoding::kDirect && IsDirectLayout(dataset, file, type) &&
+      DecodeBandDirect(dataset, 1, file, &tile.data) &&
+      DecodeBandDirect(dataset, 2, file, &alpha)) {
+    ++t_direct_tile_reads;
+  } else {
+    // GDAL fills every sample.
+    const GDALDataType gdal_type = GdalTypeOf(type);
+    status = GDALRasterIO(GDALGetRasterBand(dataset, 1), GF_Read, 0, 0, tile_size, tile_size,
+                          tile.data.ptr(), tile_size, tile_size, gdal_type, 0,
+                          static_cast<int>(tile.data.step[0]));
+    if (status == CE_None) {
+      status = GDALRasterIO(GDALGetRasterBand(dataset, 2), GF_Read, 0, 0, tile_size, tile_size,
+                            alpha.ptr(), tile_size, tile_size, gdal_type, 0,
+                            static_cast<int>(alpha.step[0]));
+    }
   }
-  GDALClose(dataset);
+  close();
   if (status != CE_None) {
     throw OutputError("cannot read tile " + path.string() + ": " + capture.message() +
                       ". Fix: restore the file or start a new store (--overwrite)");
@@ -342,32 +542,48 @@ TileImage HalveIntegerTile(const TileImage& tile, TilePools* pools) {
     };
     int x = 0;
 #if CV_SIMD128
-    if constexpr (std::is_same_v<T, uint16_t>) {
-      // Eight outputs at once where all 32 samples under them are covered (a tile's inside):
-      // RoundedMean's count-4 case on 32-bit sums. Other blocks output by output.
+    {
+      // A vector of outputs at once (8 UInt16 on 32-bit sums, 16 Byte on 16-bit sums) where all
+      // the samples under them are covered (a tile's inside): RoundedMean's count-4 case. Other
+      // blocks output by output.
+      using Samples = std::conditional_t<sizeof(T) == 1, cv::v_uint8x16, cv::v_uint16x8>;
+      using Sums = std::conditional_t<sizeof(T) == 1, cv::v_uint16x8, cv::v_uint32x4>;
+      constexpr int kOutputs = Samples::nlanes;
       const cv::v_uint8x16 none = cv::v_setzero_u8();
-      const cv::v_uint32x4 one = cv::v_setall_u32(1);
-      const auto mean = [&](const cv::v_uint32x4& a, const cv::v_uint32x4& b,
-                            const cv::v_uint32x4& c, const cv::v_uint32x4& d) {
-        const cv::v_uint32x4 sum = a + b + c + d;
+      Sums one;
+      if constexpr (sizeof(T) == 1) {
+        one = cv::v_setall_u16(1);
+      } else {
+        one = cv::v_setall_u32(1);
+      }
+      const auto mean = [&](const Sums& a, const Sums& b, const Sums& c, const Sums& d) {
+        const Sums sum = a + b + c + d;
         return (sum + one + ((sum >> 2) & one)) >> 2;
       };
-      for (; x + 8 <= w; x += 8) {
+      const auto all_covered = [&](int i) {  // 2 x kOutputs coverage bytes in both rows.
+        for (int k = i; k < i + 2 * kOutputs; k += 16) {
+          if (!cv::v_check_all((cv::v_load(c0 + k) != none) & (cv::v_load(c1 + k) != none))) {
+            return false;
+          }
+        }
+        return true;
+      };
+      for (; x + kOutputs <= w; x += kOutputs) {
         const int i = 2 * x;
-        if (!cv::v_check_all((cv::v_load(c0 + i) != none) & (cv::v_load(c1 + i) != none))) {
-          for (int k = x; k < x + 8; ++k) one_mean(k);
+        if (!all_covered(i)) {
+          for (int k = x; k < x + kOutputs; ++k) one_mean(k);
           continue;
         }
-        cv::v_uint16x8 e0, o0, e1, o1;
+        Samples e0, o0, e1, o1;
         cv::v_load_deinterleave(v0 + i, e0, o0);
         cv::v_load_deinterleave(v1 + i, e1, o1);
-        cv::v_uint32x4 e0l, e0h, o0l, o0h, e1l, e1h, o1l, o1h;
+        Sums e0l, e0h, o0l, o0h, e1l, e1h, o1l, o1h;
         cv::v_expand(e0, e0l, e0h);
         cv::v_expand(o0, o0l, o0h);
         cv::v_expand(e1, e1l, e1h);
         cv::v_expand(o1, o1l, o1h);
         cv::v_store(value + x, cv::v_pack(mean(e0l, o0l, e1l, o1l), mean(e0h, o0h, e1h, o1h)));
-        std::memset(covered + x, 255, 8);
+        std::memset(covered + x, 255, kOutputs);
       }
     }
 #endif

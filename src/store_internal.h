@@ -71,9 +71,25 @@ struct TileWriteSettings {
 // file's size. Throws OutputError naming the file on any failure (the old file stays).
 int64_t WriteTileAtomic(const std::filesystem::path& path, const TileImage& tile,
                         const double gt[6], const TileWriteSettings& settings);
+// How ReadTile decodes a tile's samples. kDirect: GDAL opens the file (its header, shape and
+// block table) and, when the blocks are the store's own layout (ZSTD with the horizontal
+// predictor, band-interleaved, Byte or UInt16, little-endian), ReadTile decompresses them with
+// libzstd and undoes the predictor itself; anything else, and any block that does not decode,
+// goes through GDAL's RasterIO as with kGdal. Both give the same samples. Why: libtiff 4.5
+// undoes the predictor one byte at a time through memory (each add waits for the store before
+// it), the largest single cost of reading a tile back (docs/store.md, "Reading tiles back").
+enum class TileDecoding { kDirect, kGdal };
+
 // Reads a tile written by WriteTileAtomic. Throws OutputError if unreadable or of another shape.
 TileImage ReadTile(const std::filesystem::path& path, int tile_size, PixelType type,
-                   TilePools* pools = nullptr);
+                   TilePools* pools = nullptr, TileDecoding decoding = TileDecoding::kDirect);
+// Tiles this thread has read with the direct decoder (ReadTile's kDirect path taken), for tests.
+int64_t DirectTileReads();
+
+// TIFF's horizontal differencing (predictor 2) undone over one row of n samples in place: each
+// sample becomes the wrapped sum of itself and all before it in the row.
+void UndoHorizontalDifferencing(uint8_t* row, int n);
+void UndoHorizontalDifferencing(uint16_t* row, int n);
 
 // Writes `content` to path through a temporary name and a rename. Throws OutputError.
 void WriteFileAtomic(const std::filesystem::path& path, const std::string& content, bool durable);

@@ -1007,8 +1007,8 @@ TEST(TileStoreTest, HalvedTilesEqualTheFloatFormula) {
       cv::randu(tile.data, 0, top + 1);
       if (trial % 4 == 1) tile.data.setTo(top);        // Saturation.
       if (trial % 4 == 2) cv::randu(tile.data, 0, 4);  // Means of x.5 (to even) and x/3.
-      // Every 5th trial all covered but a few samples: the UInt16 path's 8-output blocks of a
-      // tile's inside (all 32 samples covered) beside blocks with a gap.
+      // Every 5th trial all covered but a few samples: the vector blocks of a tile's inside
+      // (8 UInt16 or 16 Byte outputs whose samples are all covered) beside blocks with a gap.
       std::bernoulli_distribution cover(trial % 5 == 4 ? 0.998 : trial % 2 ? 0.5 : 0.9);
       for (int y = 0; y < 64; ++y)
         for (int x = 0; x < 64; ++x) tile.alpha.at<uchar>(y, x) = cover(random) ? 255 : 0;
@@ -1018,6 +1018,115 @@ TEST(TileStoreTest, HalvedTilesEqualTheFloatFormula) {
       EXPECT_EQ(cv::norm(fast.alpha, slow.alpha, cv::NORM_INF), 0.0) << "trial " << trial;
     }
   }
+}
+
+// The direct decoder's prefix sums (SSE2 in steps of 16 or 8 samples, then a scalar tail) against
+// the plain running sum, over lengths around the vector widths, with wrap-around.
+TEST(TileStoreTest, PredictorUndoneAsARunningSum) {
+  std::mt19937 random(11);
+  for (int n : {0, 1, 7, 8, 9, 15, 16, 17, 31, 32, 33, 100, 256, 300}) {
+    std::vector<uint8_t> bytes(n);
+    std::vector<uint16_t> words(n);
+    for (int i = 0; i < n; ++i) {
+      bytes[i] = static_cast<uint8_t>(random());
+      words[i] = static_cast<uint16_t>(random());
+    }
+    std::vector<uint8_t> expected8(n);
+    std::vector<uint16_t> expected16(n);
+    uint32_t sum8 = 0, sum16 = 0;
+    for (int i = 0; i < n; ++i) {
+      sum8 += bytes[i];
+      sum16 += words[i];
+      expected8[i] = static_cast<uint8_t>(sum8 & 0xFF);
+      expected16[i] = static_cast<uint16_t>(sum16 & 0xFFFF);
+    }
+    store::UndoHorizontalDifferencing(bytes.data(), n);
+    store::UndoHorizontalDifferencing(words.data(), n);
+    EXPECT_EQ(bytes, expected8) << "n " << n;
+    EXPECT_EQ(words, expected16) << "n " << n;
+  }
+}
+
+// Tiles read back by ReadTile's own decoder (ZSTD blocks, the predictor undone in SSE2) hold the
+// same samples and coverage as GDAL's decoding of the same file, for both integer types and tile
+// sizes of whole and partial 256-pixel blocks; other layouts (DEFLATE, Float32) go through GDAL.
+// A tile cut short is an error naming the file, not a crash.
+TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
+  GDALAllRegister();
+  const fs::path dir = FreshDir("direct_read");
+  const LocalFrame frame(kLat0, kLon0);
+  std::mt19937 random(3);
+  struct Case {
+    PixelType type;
+    int size;
+    std::string compression;
+    bool direct;
+  };
+  const std::vector<Case> cases = {
+      {PixelType::kByte, 512, "ZSTD", true},     {PixelType::kUInt16, 512, "ZSTD", true},
+      {PixelType::kByte, 300, "ZSTD", true},     {PixelType::kUInt16, 300, "ZSTD", true},
+      {PixelType::kUInt16, 64, "ZSTD", true},    {PixelType::kUInt16, 512, "DEFLATE", false},
+      {PixelType::kFloat32, 256, "ZSTD", false},
+  };
+  for (const Case& c : cases) {
+    SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
+                 std::to_string(static_cast<int>(c.type)));
+    store::TileImage tile = store::EmptyTile(c.size, c.type);
+    // Smooth ground with noise (as a mosaic: the predictor leaves small differences) and a
+    // covered disc with a ragged edge.
+    cv::Mat ground(c.size, c.size, CV_32F);
+    cv::randn(ground, 0, 1);
+    cv::GaussianBlur(ground, ground, cv::Size(0, 0), 6);
+    cv::normalize(ground, ground, 0, c.type == PixelType::kByte ? 255 : 60000, cv::NORM_MINMAX);
+    cv::Mat noise(c.size, c.size, CV_32F);
+    cv::randn(noise, 0, c.type == PixelType::kByte ? 3 : 300);
+    ground += noise;
+    ground.convertTo(tile.data, tile.data.type());
+    std::bernoulli_distribution ragged(0.3);
+    for (int y = 0; y < c.size; ++y) {
+      for (int x = 0; x < c.size; ++x) {
+        const double r = std::hypot(x - c.size * 0.4, y - c.size * 0.6);
+        tile.alpha.at<uchar>(y, x) =
+            r < c.size * 0.45 || (r < c.size * 0.5 && ragged(random)) ? 255 : 0;
+      }
+    }
+    tile.data.setTo(0, tile.alpha == 0);
+    store::TileWriteSettings settings;
+    settings.type = c.type;
+    settings.compression = c.compression;
+    settings.crs_wkt = frame.CrsWkt();
+    double gt[6];
+    store::TileGeoTransform(kGsd, c.size, 0, {-3, 2}, gt);
+    const fs::path path = dir / "tile.tif";
+    store::WriteTileAtomic(path, tile, gt, settings);
+
+    const int64_t direct_before = store::DirectTileReads();
+    const store::TileImage direct = store::ReadTile(path, c.size, c.type);
+    EXPECT_EQ(store::DirectTileReads() - direct_before, c.direct ? 1 : 0);
+    const store::TileImage by_gdal =
+        store::ReadTile(path, c.size, c.type, nullptr, store::TileDecoding::kGdal);
+    EXPECT_EQ(store::DirectTileReads() - direct_before, c.direct ? 1 : 0);
+    ASSERT_EQ(direct.data.type(), tile.data.type());
+    EXPECT_EQ(cv::norm(direct.data, by_gdal.data, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(direct.alpha, by_gdal.alpha, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(direct.data, tile.data, cv::NORM_INF), 0.0);  // Lossless.
+    EXPECT_EQ(cv::norm(direct.alpha, tile.alpha, cv::NORM_INF), 0.0);
+
+    if (c.size == 512 && c.type == PixelType::kByte) {
+      // Cut short inside the first band's blocks: its block table points past the end.
+      const auto full = fs::file_size(path);
+      fs::resize_file(path, full / 3);
+      GdalErrorCount quiet;
+      try {
+        store::ReadTile(path, c.size, c.type);
+        ADD_FAILURE() << "a truncated tile was read without an error";
+      } catch (const OutputError& e) {
+        EXPECT_NE(std::string(e.what()).find(path.string()), std::string::npos) << e.what();
+        EXPECT_NE(std::string(e.what()).find("Fix:"), std::string::npos) << e.what();
+      }
+    }
+  }
+  fs::remove_all(dir);
 }
 
 // An oblique frame's footprint fills about half of its bounding box: tiles the box reaches but
