@@ -1,4 +1,4 @@
-// Orthorectification cost per 640x512 16-bit frame on one core.
+// Orthorectification cost per 640x512 16-bit and 8-bit frame on one core.
 // Usage: ortho_bench [--json FILE] [--frames N]
 #include <time.h>
 
@@ -30,16 +30,17 @@ int main(int argc, char** argv) {
   }
   cv::setNumThreads(1);
   const CameraModel camera = DefaultInfraredCamera();
-  cv::Mat frame(camera.height, camera.width, CV_16U);
-  cv::randu(frame, 0, 65535);
+  cv::Mat frame16(camera.height, camera.width, CV_16U), frame8;
+  cv::randu(frame16, 0, 65535);
+  frame16.convertTo(frame8, CV_8U, 1.0 / 256.0);
   const LocalFrame local(47.2, 8.5);
   const double altitude_m = 1000.0;
   const MosaicGrid grid{altitude_m / camera.fx};  // Nadir GSD of the camera.
   nlohmann::json rows = nlohmann::json::array();
-  std::printf("%-10s %-22s %-12s %-12s %-12s %-10s\n", "off_nadir", "warp", "ortho_px", "wall_ms",
-              "cpu_ms", "target");
-  // The warps: OpenCV's (the registration's POS orthoimages) and the own 16-bit one
-  // (exact_bilinear_16bit), each over the whole box and over the footprint only (the renders).
+  std::printf("%-5s %-10s %-22s %-12s %-12s %-12s %-10s\n", "bits", "off_nadir", "warp", "ortho_px",
+              "wall_ms", "cpu_ms", "target");
+  // The warps: OpenCV's and the own one (exact_bilinear_16bit / _8bit), each over the whole box
+  // (the registration's POS orthoimages) and over the footprint only (the renders).
   struct Variant {
     const char* name;
     bool footprint_only, own;
@@ -48,48 +49,53 @@ int main(int argc, char** argv) {
                               {"own box", false, true},
                               {"opencv footprint", true, false},
                               {"own footprint (render)", true, true}};
-  for (double off_nadir : {0.0, 30.0, 45.0}) {
-    PosRecord r;
-    r.lat_deg = 47.2;
-    r.lon_deg = 8.5;
-    r.height_m = altitude_m;
-    r.gimbal_roll_deg = off_nadir;
-    r.yaw_deg = 33.0;  // A rotated footprint, as on a flight.
-    const FrameGeometry g =
-        ComputeFrameGeometry(camera, PoseFromRecord(r), local, grid, FlatGround(0.0));
-    double opencv_cpu_ms[2] = {0.0, 0.0};
-    for (const Variant& v : variants) {
-      OrthoOptions options;
-      options.footprint_only = v.footprint_only;
-      options.exact_bilinear_16bit = v.own;
-      Orthorectifier worker(camera, options);
-      worker.set_reuse_output(true);
-      OrthoImage out;
-      worker.Run(frame, g.mosaic_from_image, &out);  // Warm.
-      const auto start = std::chrono::steady_clock::now();
-      const double cpu_start = ThreadCpuMs();
-      for (int i = 0; i < frames; ++i) worker.Run(frame, g.mosaic_from_image, &out);
-      const double cpu_ms = (ThreadCpuMs() - cpu_start) / frames;
-      const double ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-              .count() /
-          frames;
-      if (!v.own) opencv_cpu_ms[v.footprint_only] = cpu_ms;
-      const double speedup = v.own ? opencv_cpu_ms[v.footprint_only] / cpu_ms : 1.0;
-      std::printf("%-10.0f %-22s %-12s %-12.3f %-12.3f %-10s", off_nadir, v.name,
-                  (std::to_string(out.image.cols) + "x" + std::to_string(out.image.rows)).c_str(),
-                  ms, cpu_ms, cpu_ms <= 2.0 ? "<= 2 ms" : "MISSED");
-      if (v.own) std::printf(" %.2fx OpenCV's", speedup);
-      std::printf("\n");
-      rows.push_back({{"off_nadir_deg", off_nadir},
-                      {"warp", v.name},
-                      {"footprint_only", v.footprint_only},
-                      {"exact_bilinear_16bit", v.own},
-                      {"ortho_width", out.image.cols},
-                      {"ortho_height", out.image.rows},
-                      {"ms_per_frame", ms},
-                      {"cpu_ms_per_frame", cpu_ms},
-                      {"speedup_vs_opencv", speedup}});
+  for (const int bits : {16, 8}) {
+    const cv::Mat& frame = bits == 16 ? frame16 : frame8;
+    for (double off_nadir : {0.0, 30.0, 45.0}) {
+      PosRecord r;
+      r.lat_deg = 47.2;
+      r.lon_deg = 8.5;
+      r.height_m = altitude_m;
+      r.gimbal_roll_deg = off_nadir;
+      r.yaw_deg = 33.0;  // A rotated footprint, as on a flight.
+      const FrameGeometry g =
+          ComputeFrameGeometry(camera, PoseFromRecord(r), local, grid, FlatGround(0.0));
+      double opencv_cpu_ms[2] = {0.0, 0.0};
+      for (const Variant& v : variants) {
+        OrthoOptions options;
+        options.footprint_only = v.footprint_only;
+        options.exact_bilinear_16bit = v.own;
+        options.exact_bilinear_8bit = v.own;
+        Orthorectifier worker(camera, options);
+        worker.set_reuse_output(true);
+        OrthoImage out;
+        worker.Run(frame, g.mosaic_from_image, &out);  // Warm.
+        const auto start = std::chrono::steady_clock::now();
+        const double cpu_start = ThreadCpuMs();
+        for (int i = 0; i < frames; ++i) worker.Run(frame, g.mosaic_from_image, &out);
+        const double cpu_ms = (ThreadCpuMs() - cpu_start) / frames;
+        const double ms =
+            std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+                .count() /
+            frames;
+        if (!v.own) opencv_cpu_ms[v.footprint_only] = cpu_ms;
+        const double speedup = v.own ? opencv_cpu_ms[v.footprint_only] / cpu_ms : 1.0;
+        std::printf("%-5d %-10.0f %-22s %-12s %-12.3f %-12.3f %-10s", bits, off_nadir, v.name,
+                    (std::to_string(out.image.cols) + "x" + std::to_string(out.image.rows)).c_str(),
+                    ms, cpu_ms, cpu_ms <= 2.0 ? "<= 2 ms" : "MISSED");
+        if (v.own) std::printf(" %.2fx OpenCV's", speedup);
+        std::printf("\n");
+        rows.push_back({{"bits", bits},
+                        {"off_nadir_deg", off_nadir},
+                        {"warp", v.name},
+                        {"footprint_only", v.footprint_only},
+                        {"own_warp", v.own},
+                        {"ortho_width", out.image.cols},
+                        {"ortho_height", out.image.rows},
+                        {"ms_per_frame", ms},
+                        {"cpu_ms_per_frame", cpu_ms},
+                        {"speedup_vs_opencv", speedup}});
+      }
     }
   }
   if (!json_path.empty()) {

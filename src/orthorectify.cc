@@ -10,7 +10,7 @@
 #include "buffer_view.h"
 #include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
-#include "warp_bilinear16.h"
+#include "warp_bilinear.h"
 
 namespace irmosaic {
 
@@ -172,12 +172,13 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
         Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
     std::array<Eigen::Vector2d, 4> footprint;
     for (int c = 0; c < 4; ++c) footprint[c] = ApplyHomography(out->ortho_from_image, corners[c]);
-    // OrthoOptions::exact_bilinear_16bit: the own warp, where it takes the frame.
-    const bool own_warp = options_.exact_bilinear_16bit &&
-                          options_.interpolation == cv::INTER_LINEAR && frame.type() == CV_16UC1;
+    // OrthoOptions::exact_bilinear_16bit / _8bit: the own warp, where it takes the frame.
+    const bool own_warp = options_.interpolation == cv::INTER_LINEAR &&
+                          ((options_.exact_bilinear_16bit && frame.type() == CV_16UC1) ||
+                           (options_.exact_bilinear_8bit && frame.type() == CV_8UC1));
     if (!options_.footprint_only && own_warp) {
       out->image.create(size, frame.type());
-      warp::WarpBilinear16(frame, image_from_ortho, &out->image);
+      warp::WarpBilinear(frame, image_from_ortho, &out->image);
     } else if (!options_.footprint_only) {
       if (use_affine) {
         cv::warpAffine(frame, out->image, m, size, options_.interpolation | cv::WARP_INVERSE_MAP,
@@ -207,7 +208,7 @@ void Orthorectifier::Run(const cv::Mat& frame, const Eigen::Matrix3d& mosaic_fro
         const double sx = band_x0, sy = band_y0;
         if (own_warp) {
           const cv::Matx33d band_shift(1, 0, sx, 0, 1, sy, 0, 0, 1);
-          warp::WarpBilinear16(frame, image_from_ortho * band_shift, &part);
+          warp::WarpBilinear(frame, image_from_ortho * band_shift, &part);
         } else if (use_affine) {
           cv::Matx23d shifted = m;
           shifted(0, 2) += m(0, 0) * sx + m(0, 1) * sy;

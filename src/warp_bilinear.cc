@@ -1,5 +1,5 @@
-// Bilinear projective resampling of 16-bit frames (see warp_bilinear16.h).
-#include "warp_bilinear16.h"
+// Bilinear projective resampling of 8- and 16-bit frames (see warp_bilinear.h).
+#include "warp_bilinear.h"
 
 #include <cmath>
 #include <cstdint>
@@ -29,8 +29,8 @@ RowMap MapOfRow(const cv::Matx33d& m, int y) {
 // One output pixel. The operations (and their order) are the AVX2 lanes': max/min written as
 // the instructions behave (a NaN position goes to 0), truncation of a non-negative position,
 // rounding to nearest even.
-inline uint16_t SamplePixel(const uint8_t* src, size_t step, int cols, int rows, const RowMap& r,
-                            int x) {
+template <typename T>
+inline T SamplePixel(const uint8_t* src, size_t step, int cols, int rows, const RowMap& r, int x) {
   const float fx = static_cast<float>(x);
   const float px = r.ax * fx + r.bx, py = r.ay * fx + r.by, pw = r.aw * fx + r.bw;
   const float inv = 1.0f / pw;
@@ -44,27 +44,27 @@ inline uint16_t SamplePixel(const uint8_t* src, size_t step, int cols, int rows,
   ix = ix < cols - 2 ? ix : cols - 2;
   iy = iy < rows - 2 ? iy : rows - 2;
   const float tx = sx - static_cast<float>(ix), ty = sy - static_cast<float>(iy);
-  const uint16_t* top =
-      reinterpret_cast<const uint16_t*>(src + static_cast<size_t>(iy) * step) + ix;
-  const uint16_t* bottom =
-      reinterpret_cast<const uint16_t*>(src + static_cast<size_t>(iy + 1) * step) + ix;
+  const T* top = reinterpret_cast<const T*>(src + static_cast<size_t>(iy) * step) + ix;
+  const T* bottom = reinterpret_cast<const T*>(src + static_cast<size_t>(iy + 1) * step) + ix;
   const float p00 = top[0], p01 = top[1], p10 = bottom[0], p11 = bottom[1];
   const float upper = p00 + (p01 - p00) * tx;
   const float lower = p10 + (p11 - p10) * tx;
   const float value = upper + (lower - upper) * ty;
-  return static_cast<uint16_t>(static_cast<int>(std::nearbyint(value)));
+  return static_cast<T>(static_cast<int>(std::nearbyint(value)));
 }
 
+template <typename T>
 void WarpRowsScalar(const cv::Mat& src, const cv::Matx33d& m, cv::Mat* dst, int y0, int y1) {
   for (int y = y0; y < y1; ++y) {
     const RowMap r = MapOfRow(m, y);
-    uint16_t* out = dst->ptr<uint16_t>(y);
+    T* out = dst->ptr<T>(y);
     for (int x = 0; x < dst->cols; ++x)
-      out[x] = SamplePixel(src.data, src.step, src.cols, src.rows, r, x);
+      out[x] = SamplePixel<T>(src.data, src.step, src.cols, src.rows, r, x);
   }
 }
 
 #if defined(__x86_64__)
+template <typename T>
 __attribute__((target("avx2"))) void WarpRowsAvx2(const cv::Mat& src, const cv::Matx33d& m,
                                                   cv::Mat* dst) {
   const int cols = src.cols, rows = src.rows;
@@ -73,16 +73,17 @@ __attribute__((target("avx2"))) void WarpRowsAvx2(const cv::Mat& src, const cv::
   const __m256 max_y = _mm256_set1_ps(static_cast<float>(rows - 1));
   const __m256i last_ix = _mm256_set1_epi32(cols - 2), last_iy = _mm256_set1_epi32(rows - 2);
   const __m256i step = _mm256_set1_epi32(static_cast<int>(src.step));
-  const __m256i low16 = _mm256_set1_epi32(0xFFFF);
+  const __m256i low16 = _mm256_set1_epi32(0xFFFF), low8 = _mm256_set1_epi32(0xFF);
   const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const int* base = reinterpret_cast<const int*>(src.data);
   const int* below = reinterpret_cast<const int*>(src.data + src.step);
+  const int* below_minus_2 = reinterpret_cast<const int*>(src.data + src.step - 2);
   for (int y = 0; y < dst->rows; ++y) {
     const RowMap r = MapOfRow(m, y);
     const __m256 ax = _mm256_set1_ps(r.ax), bx = _mm256_set1_ps(r.bx);
     const __m256 ay = _mm256_set1_ps(r.ay), by = _mm256_set1_ps(r.by);
     const __m256 aw = _mm256_set1_ps(r.aw), bw = _mm256_set1_ps(r.bw);
-    uint16_t* out = dst->ptr<uint16_t>(y);
+    T* out = dst->ptr<T>(y);
     int x = 0;
     for (; x + 8 <= dst->cols; x += 8) {
       const __m256 fx = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(x), lanes));
@@ -97,52 +98,81 @@ __attribute__((target("avx2"))) void WarpRowsAvx2(const cv::Mat& src, const cv::
       const __m256i iy = _mm256_min_epi32(_mm256_cvttps_epi32(sy), last_iy);
       const __m256 tx = _mm256_sub_ps(sx, _mm256_cvtepi32_ps(ix));
       const __m256 ty = _mm256_sub_ps(sy, _mm256_cvtepi32_ps(iy));
-      // Byte offset of (ix, iy); one 32-bit gather per row reads the pixel and its right
-      // neighbour (ix <= cols - 2, so both inside the row).
-      const __m256i offset =
-          _mm256_add_epi32(_mm256_mullo_epi32(iy, step), _mm256_add_epi32(ix, ix));
-      const __m256i upper_pair = _mm256_i32gather_epi32(base, offset, 1);
-      const __m256i lower_pair = _mm256_i32gather_epi32(below, offset, 1);
-      const __m256 p00 = _mm256_cvtepi32_ps(_mm256_and_si256(upper_pair, low16));
-      const __m256 p01 = _mm256_cvtepi32_ps(_mm256_srli_epi32(upper_pair, 16));
-      const __m256 p10 = _mm256_cvtepi32_ps(_mm256_and_si256(lower_pair, low16));
-      const __m256 p11 = _mm256_cvtepi32_ps(_mm256_srli_epi32(lower_pair, 16));
+      __m256 p00, p01, p10, p11;
+      if constexpr (sizeof(T) == 2) {
+        // Byte offset of (ix, iy); one 32-bit gather per row reads the pixel and its right
+        // neighbour (ix <= cols - 2, so both inside the row).
+        const __m256i offset =
+            _mm256_add_epi32(_mm256_mullo_epi32(iy, step), _mm256_add_epi32(ix, ix));
+        const __m256i upper_pair = _mm256_i32gather_epi32(base, offset, 1);
+        const __m256i lower_pair = _mm256_i32gather_epi32(below, offset, 1);
+        p00 = _mm256_cvtepi32_ps(_mm256_and_si256(upper_pair, low16));
+        p01 = _mm256_cvtepi32_ps(_mm256_srli_epi32(upper_pair, 16));
+        p10 = _mm256_cvtepi32_ps(_mm256_and_si256(lower_pair, low16));
+        p11 = _mm256_cvtepi32_ps(_mm256_srli_epi32(lower_pair, 16));
+      } else {
+        // 4 bytes per gather: the upper row's from the pixel on (bytes 0-1 are the pair; ix + 3
+        // stays inside the buffer, a row follows), the lower row's from two bytes before it
+        // (bytes 2-3; the last row's last pixel pair ends the buffer, nothing is read past it).
+        const __m256i offset = _mm256_add_epi32(_mm256_mullo_epi32(iy, step), ix);
+        const __m256i upper = _mm256_i32gather_epi32(base, offset, 1);
+        const __m256i lower = _mm256_i32gather_epi32(below_minus_2, offset, 1);
+        p00 = _mm256_cvtepi32_ps(_mm256_and_si256(upper, low8));
+        p01 = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32(upper, 8), low8));
+        p10 = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32(lower, 16), low8));
+        p11 = _mm256_cvtepi32_ps(_mm256_srli_epi32(lower, 24));
+      }
       const __m256 upper = _mm256_add_ps(p00, _mm256_mul_ps(_mm256_sub_ps(p01, p00), tx));
       const __m256 lower = _mm256_add_ps(p10, _mm256_mul_ps(_mm256_sub_ps(p11, p10), tx));
       const __m256 value = _mm256_add_ps(upper, _mm256_mul_ps(_mm256_sub_ps(lower, upper), ty));
       const __m256i rounded = _mm256_cvtps_epi32(value);
       // Pack to 16 bits (values are within [0, 65535]) and put the two halves together.
-      const __m256i packed = _mm256_permute4x64_epi64(_mm256_packus_epi32(rounded, rounded), 0x08);
-      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + x), _mm256_castsi256_si128(packed));
+      const __m256i words = _mm256_packus_epi32(rounded, rounded);
+      if constexpr (sizeof(T) == 2) {
+        const __m256i packed = _mm256_permute4x64_epi64(words, 0x08);
+        _mm_storeu_si128(reinterpret_cast<__m128i*>(out + x), _mm256_castsi256_si128(packed));
+      } else {  // On to 8 bits (within [0, 255]): each half's first 4 bytes, side by side.
+        const __m256i bytes = _mm256_packus_epi16(words, words);
+        const __m256i packed =
+            _mm256_permutevar8x32_epi32(bytes, _mm256_setr_epi32(0, 4, 0, 0, 0, 0, 0, 0));
+        _mm_storel_epi64(reinterpret_cast<__m128i*>(out + x), _mm256_castsi256_si128(packed));
+      }
     }
-    for (; x < dst->cols; ++x) out[x] = SamplePixel(src.data, src.step, cols, rows, r, x);
+    for (; x < dst->cols; ++x) out[x] = SamplePixel<T>(src.data, src.step, cols, rows, r, x);
   }
 }
 #endif
 
 bool Supported(const cv::Mat& src, const cv::Mat* dst) {
-  return src.type() == CV_16UC1 && src.cols >= 2 && src.rows >= 2 && dst != nullptr &&
-         dst->type() == CV_16UC1 &&
+  return (src.type() == CV_16UC1 || src.type() == CV_8UC1) && src.cols >= 2 && src.rows >= 2 &&
+         dst != nullptr && dst->type() == src.type() &&
          static_cast<double>(src.step) * src.rows < std::numeric_limits<int>::max();
 }
 
 }  // namespace
 
-bool WarpBilinear16(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst) {
+bool WarpBilinear(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst) {
   if (!Supported(src, dst)) return false;
 #if defined(__x86_64__)
   if (simd::Avx2()) {
-    WarpRowsAvx2(src, src_from_dst, dst);
+    if (src.depth() == CV_16U) {
+      WarpRowsAvx2<uint16_t>(src, src_from_dst, dst);
+    } else {
+      WarpRowsAvx2<uint8_t>(src, src_from_dst, dst);
+    }
     return true;
   }
 #endif
-  WarpRowsScalar(src, src_from_dst, dst, 0, dst->rows);
-  return true;
+  return WarpBilinearScalar(src, src_from_dst, dst);
 }
 
-bool WarpBilinear16Scalar(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst) {
+bool WarpBilinearScalar(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst) {
   if (!Supported(src, dst)) return false;
-  WarpRowsScalar(src, src_from_dst, dst, 0, dst->rows);
+  if (src.depth() == CV_16U) {
+    WarpRowsScalar<uint16_t>(src, src_from_dst, dst, 0, dst->rows);
+  } else {
+    WarpRowsScalar<uint8_t>(src, src_from_dst, dst, 0, dst->rows);
+  }
   return true;
 }
 

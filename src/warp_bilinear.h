@@ -1,10 +1,11 @@
 #pragma once
 // Private helper of the orthorectifier (src/orthorectify.cc): bilinear projective resampling
-// of 16-bit frames. OpenCV 4.6 warps 16-bit images with scalar code (its remap has vector code
-// for 8-bit images only) and quantises positions to 1/32 px; this computes each position in
-// float and samples the four neighbours with AVX2 gathers where the CPU has them. The scalar
-// path computes every pixel with the same float operations in the same order (no fused
-// multiply-add), so the output does not depend on the CPU. Not installed.
+// of 8- and 16-bit frames. OpenCV 4.6 warps 16-bit images with scalar code (its remap has vector
+// code for 8-bit images only), and for either depth quantises positions to 1/32 px and builds
+// fixed-point maps before remapping; this computes each position in float and samples the four
+// neighbours with AVX2 gathers where the CPU has them. The scalar path computes every pixel
+// with the same float operations in the same order (no fused multiply-add), so the output does
+// not depend on the CPU. Not installed.
 
 #include <opencv2/core.hpp>
 
@@ -12,11 +13,12 @@ namespace irmosaic::warp {
 
 // dst(x, y) = src(m (x, y, 1)) (homogeneous), bilinear, sample positions clamped to src (as
 // BORDER_REPLICATE), rounded to the nearest integer (ties to even). m = src_from_dst.
-// src: CV_16UC1 of at least 2 x 2 pixels and less than 2 GiB; dst: CV_16UC1, its size is the
-// output's (written in place, any step). Returns false, dst untouched, for anything else.
-bool WarpBilinear16(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst);
+// src: CV_8UC1 or CV_16UC1 of at least 2 x 2 pixels and less than 2 GiB; dst: the same type,
+// its size is the output's (written in place, any step). Returns false, dst untouched, for
+// anything else.
+bool WarpBilinear(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst);
 
 // Tests: the scalar path alone (the AVX2 one is chosen by simd::Avx2()).
-bool WarpBilinear16Scalar(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst);
+bool WarpBilinearScalar(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst);
 
 }  // namespace irmosaic::warp

@@ -7,7 +7,7 @@
 #include <random>
 
 #include "../src/simd_dispatch.h"
-#include "../src/warp_bilinear16.h"
+#include "../src/warp_bilinear.h"
 #include "irmosaic/error.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -241,13 +241,11 @@ TEST(OrthorectifyTest, ExactBilinearWarpPlacesPixelsWithinTheRoundingOf16Bits) {
 }
 
 // The own warp's AVX2 path (8 pixels at a time, chosen at run time) gives the very values of its
-// scalar path: row lengths 1-37 (every tail), projective and affine maps, positions far
-// outside the frame (replicated border) and behind the camera (clamped, no crash).
+// scalar path, for 16-bit and 8-bit frames: row lengths 1-37 (every tail), projective and affine
+// maps, positions far outside the frame (replicated border: the last row's last pixels, where
+// the 8-bit gathers read the buffer's last bytes) and behind the camera (clamped, no crash).
 TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
   if (!simd::Avx2()) GTEST_SKIP() << "this CPU has no AVX2: only the scalar path runs";
-  std::mt19937 rng(5);
-  cv::Mat src(512, 640, CV_16U);
-  cv::randu(src, 0, 65536);
   const CameraModel camera = DefaultInfraredCamera();
   std::vector<cv::Matx33d> maps;
   for (const double sweep : {-35.0, -10.0, 0.0}) {
@@ -260,23 +258,58 @@ TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
   maps.push_back(cv::Matx33d(0.93, 0.21, 17.25, -0.17, 1.07, -3.5, 0, 0, 1));
   maps.push_back(cv::Matx33d(1.5, 0.0, -100.0, 0.0, 1.5, -90.0, 0.001, 0.0004, 0.2));
   maps.push_back(cv::Matx33d(1, 0, 0, 0, 1, 0, -0.01, 0, 1));  // W crosses 0 at x = 100.
-  std::uniform_int_distribution<int> offset(0, 700);
-  int compared = 0;
-  for (const cv::Matx33d& m : maps) {
-    for (int width = 1; width <= 37; ++width) {
-      const cv::Matx33d shift(1, 0, offset(rng), 0, 1, offset(rng) * 0.7, 0, 0, 1);
-      cv::Mat fast(3, width, CV_16U), scalar(3, width, CV_16U);
-      ASSERT_TRUE(warp::WarpBilinear16(src, m * shift, &fast));
-      ASSERT_TRUE(warp::WarpBilinear16Scalar(src, m * shift, &scalar));
-      ASSERT_EQ(cv::norm(fast, scalar, cv::NORM_INF), 0.0) << "width " << width;
-      compared += width * 3;
+  for (const int depth : {CV_16U, CV_8U}) {
+    std::mt19937 rng(5);
+    // A buffer of exactly the frame's bytes, so a read past its end is out of the allocation
+    // (ASan's build reports it).
+    cv::Mat src(512, 640, depth);
+    cv::randu(src, 0, depth == CV_16U ? 65536 : 256);
+    std::uniform_int_distribution<int> offset(0, 700);
+    int compared = 0;
+    for (const cv::Matx33d& m : maps) {
+      for (int width = 1; width <= 37; ++width) {
+        const cv::Matx33d shift(1, 0, offset(rng), 0, 1, offset(rng) * 0.7, 0, 0, 1);
+        cv::Mat fast(3, width, depth), scalar(3, width, depth);
+        ASSERT_TRUE(warp::WarpBilinear(src, m * shift, &fast));
+        ASSERT_TRUE(warp::WarpBilinearScalar(src, m * shift, &scalar));
+        ASSERT_EQ(cv::norm(fast, scalar, cv::NORM_INF), 0.0) << "width " << width;
+        compared += width * 3;
+      }
+    }
+    EXPECT_EQ(compared, 6 * 3 * 37 * 38 / 2);
+  }
+  // Not its business: other types, mixed types and tiny frames go to OpenCV.
+  cv::Mat out(4, 4, CV_16U);
+  EXPECT_FALSE(warp::WarpBilinear(cv::Mat(4, 4, CV_32F, cv::Scalar(1)), maps[3], &out));
+  EXPECT_FALSE(warp::WarpBilinear(cv::Mat(4, 4, CV_8U, cv::Scalar(1)), maps[3], &out));
+  EXPECT_FALSE(warp::WarpBilinear(cv::Mat(1, 4, CV_16U, cv::Scalar(1)), maps[3], &out));
+}
+
+// 8-bit frames go through the same warp as 16-bit ones: the same samples held in either type
+// warp to the same values (so the 16-bit ramp test above bounds the 8-bit warp too), through
+// Orthorectify's whole box and footprint paths, oblique and nadir (the affine branch is
+// OpenCV's only when the own warp is off).
+TEST(OrthorectifyTest, ExactBilinearWarpOf8BitFramesEqualsItsWarpOf16Bit) {
+  const CameraModel camera = DefaultInfraredCamera();
+  cv::Mat frame8(camera.height, camera.width, CV_8U), frame16;
+  cv::randu(frame8, 0, 256);
+  cv::GaussianBlur(frame8, frame8, cv::Size(0, 0), 1.5);
+  frame8.convertTo(frame16, CV_16U);
+  for (const bool footprint_only : {false, true}) {
+    OrthoOptions options;
+    options.footprint_only = footprint_only;
+    for (const double sweep : {-35.0, 0.0}) {
+      const Eigen::Matrix3d h = ObliqueHomography(camera, sweep);
+      const OrthoImage a = Orthorectify(frame8, camera, h, options);
+      const OrthoImage b = Orthorectify(frame16, camera, h, options);
+      ASSERT_EQ(a.image.type(), CV_8U);
+      cv::Mat a16;
+      a.image.convertTo(a16, CV_16U);
+      EXPECT_EQ(cv::norm(a16, b.image, cv::NORM_INF), 0.0)
+          << "sweep " << sweep << ", footprint only " << footprint_only;
+      EXPECT_EQ(cv::norm(a.mask, b.mask, cv::NORM_INF), 0.0);
     }
   }
-  EXPECT_EQ(compared, 6 * 3 * 37 * 38 / 2);
-  // Not its business: other types and tiny frames go to OpenCV.
-  cv::Mat out(4, 4, CV_16U);
-  EXPECT_FALSE(warp::WarpBilinear16(cv::Mat(4, 4, CV_8U, cv::Scalar(1)), maps[3], &out));
-  EXPECT_FALSE(warp::WarpBilinear16(cv::Mat(1, 4, CV_16U, cv::Scalar(1)), maps[3], &out));
 }
 
 TEST(OrthorectifyTest, BadFramesAreRefused) {
