@@ -560,17 +560,26 @@ TileImage HalveIntegerTile(const TileImage& tile, TilePools* pools) {
         const Sums sum = a + b + c + d;
         return (sum + one + ((sum >> 2) & one)) >> 2;
       };
-      const auto all_covered = [&](int i) {  // 2 x kOutputs coverage bytes in both rows.
+      // Coverage of the 2 x kOutputs samples of both rows under a block: 2 all covered, 0 none
+      // (the outside of a partly covered tile), 1 mixed.
+      const auto coverage = [&](int i) {
+        cv::v_uint8x16 any = none, all = cv::v_setall_u8(255);
         for (int k = i; k < i + 2 * kOutputs; k += 16) {
-          if (!cv::v_check_all((cv::v_load(c0 + k) != none) & (cv::v_load(c1 + k) != none))) {
-            return false;
-          }
+          const cv::v_uint8x16 a = cv::v_load(c0 + k), b = cv::v_load(c1 + k);
+          any = any | a | b;
+          all = all & (a != none) & (b != none);
         }
-        return true;
+        return cv::v_check_all(all) ? 2 : cv::v_check_any(any != none) ? 1 : 0;
       };
       for (; x + kOutputs <= w; x += kOutputs) {
         const int i = 2 * x;
-        if (!all_covered(i)) {
+        const int covered_samples = coverage(i);
+        if (covered_samples == 0) {  // RoundedMean's count 0, uncovered.
+          std::memset(value + x, 0, kOutputs * sizeof(T));
+          std::memset(covered + x, 0, kOutputs);
+          continue;
+        }
+        if (covered_samples == 1) {
           for (int k = x; k < x + kOutputs; ++k) one_mean(k);
           continue;
         }
