@@ -291,14 +291,17 @@ inline __m128i BroadcastLane7(__m128i v) {
 
 // The whole file in memory: read in one call, and GDAL then parses the same bytes the blocks are
 // decoded from, so a newer version of the tile renamed over this one meanwhile cannot mix in.
-// Returns an empty string, or what failed.
-std::string ReadWholeFile(const fs::path& path, std::vector<GByte>* bytes) {
+// Returns an empty string, or what failed. A file over `max_bytes` is not read (a tile cannot be
+// that large; a damaged store must not make a read-back take the memory).
+std::string ReadWholeFile(const fs::path& path, size_t max_bytes, std::vector<GByte>* bytes) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) return std::strerror(errno);
   std::string failure;
   struct stat info {};
   if (::fstat(fd, &info) != 0) {
     failure = std::strerror(errno);
+  } else if (static_cast<uint64_t>(info.st_size) > max_bytes) {
+    failure = std::to_string(info.st_size) + " bytes, more than a tile of this store can be";
   } else {
     bytes->resize(static_cast<size_t>(info.st_size));
     size_t done = 0;
@@ -445,7 +448,10 @@ int64_t DirectTileReads() { return t_direct_tile_reads; }
 TileImage ReadTile(const fs::path& path, int tile_size, PixelType type, TilePools* pools,
                    TileDecoding decoding) {
   thread_local std::vector<GByte> file;
-  const std::string read_failure = ReadWholeFile(path, &file);
+  // Four times the samples of both bands uncompressed, and room for headers.
+  const size_t sample_bytes = CV_ELEM_SIZE(CvDepthOf(type));
+  const size_t max_bytes = 4 * 2 * sample_bytes * tile_size * tile_size + (size_t{16} << 20);
+  const std::string read_failure = ReadWholeFile(path, max_bytes, &file);
   if (!read_failure.empty()) {
     throw OutputError("cannot read tile " + path.string() + ": " + read_failure +
                       ". Fix: restore the file or start a new store (--overwrite)");

@@ -1056,7 +1056,7 @@ TEST(TileStoreTest, PredictorUndoneAsARunningSum) {
 // Tiles read back by ReadTile's own decoder (ZSTD blocks, the predictor undone in SSE2) hold the
 // same samples and coverage as GDAL's decoding of the same file, for both integer types and tile
 // sizes of whole and partial 256-pixel blocks; other layouts (DEFLATE, Float32) go through GDAL.
-// A tile cut short is an error naming the file, not a crash.
+// A tile cut short, or grown past any tile's size, is an error naming the file, not a crash.
 TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
   GDALAllRegister();
   const fs::path dir = FreshDir("direct_read");
@@ -1129,6 +1129,14 @@ TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
       } catch (const OutputError& e) {
         EXPECT_NE(std::string(e.what()).find(path.string()), std::string::npos) << e.what();
         EXPECT_NE(std::string(e.what()).find("Fix:"), std::string::npos) << e.what();
+      }
+      // Grown far past any tile (a damaged store): refused before it is read into memory.
+      fs::resize_file(path, 64 << 20);  // Sparse: no disk taken.
+      try {
+        store::ReadTile(path, c.size, c.type);
+        ADD_FAILURE() << "a 64 MiB tile was read";
+      } catch (const OutputError& e) {
+        EXPECT_NE(std::string(e.what()).find("more than a tile"), std::string::npos) << e.what();
       }
     }
   }
