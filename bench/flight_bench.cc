@@ -346,6 +346,13 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     std::lock_guard<std::mutex> lock(painted_mu);
     painted[static_cast<size_t>(k)] = p.mosaic_from_image;
   };
+  // Publish latencies as the frames reach the disk (Push's thread), for each tenth's quantiles.
+  std::vector<double> published_latency_s;
+  published_latency_s.reserve(static_cast<size_t>(config.frames));  // Memory figures flat.
+  size_t segment_latency_begin = 0;
+  options.on_frame_published = [&](int64_t, double latency_s) {
+    published_latency_s.push_back(latency_s);
+  };
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
@@ -406,6 +413,12 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
         // are CPU time; the index is the writer's wall time in it (TileStore::Stats).
         const irmosaic::TileStore::Stats store_now = mosaicker.store()->stats();
         const double frames_in_segment = std::max<double>(1.0, pushed - last_frames);
+        // Frames published since the last checkpoint (those of the tenth, less the last ones
+        // still in flight, plus the previous tenth's last ones).
+        const std::vector<double> segment_latency(
+            published_latency_s.begin() + static_cast<std::ptrdiff_t>(segment_latency_begin),
+            published_latency_s.end());
+        segment_latency_begin = published_latency_s.size();
         checkpoints.push_back(
             {{"percent", 100.0 * static_cast<double>(pushed) / config.frames},
              {"frames", pushed},
@@ -418,6 +431,10 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
               (store_now.writer_cpu_ms - last_writer_cpu_ms) / frames_in_segment},
              {"segment_index_ms_per_frame",
               (store_now.index_ms_total - last_index_ms) / frames_in_segment},
+             {"segment_frames_published", segment_latency.size()},
+             {"segment_publish_latency_p50_s", Quantile(segment_latency, 0.50)},
+             {"segment_publish_latency_p99_s", Quantile(segment_latency, 0.99)},
+             {"segment_publish_latency_max_s", Quantile(segment_latency, 1.0)},
              {"segment_tiles_written_per_frame",
               static_cast<double>(store_now.tiles_written - last_tiles_written) /
                   frames_in_segment},
@@ -439,7 +456,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
                   << c["segment_push_cpu_ms_per_frame"].get<double>() << ", writer "
                   << c["segment_writer_cpu_ms_per_frame"].get<double>() << ", index (wall) "
                   << c["segment_index_ms_per_frame"].get<double>() << "; tiles written "
-                  << c["segment_tiles_written_per_frame"].get<double>() << "/frame), RSS "
+                  << c["segment_tiles_written_per_frame"].get<double>()
+                  << "/frame), publish latency p50 / p99 / max "
+                  << c["segment_publish_latency_p50_s"].get<double>() << " / "
+                  << c["segment_publish_latency_p99_s"].get<double>() << " / "
+                  << c["segment_publish_latency_max_s"].get<double>() << " s, RSS "
                   << c["rss_mib"].get<double>() << " MiB (peak " << c["peak_rss_mib"].get<double>()
                   << "), images held " << c["held_images"].get<int64_t>() << " ("
                   << c["held_image_mib"].get<double>() << " MiB), simulator's ground cache "
@@ -1139,7 +1160,6 @@ int main(int argc, char** argv) {
     paced.rate_hz = 25.0;
     paced.store = store + "/paced";
     paced.optimize = optimize;
-    paced.checkpoints = false;
     const nlohmann::json p = RunMosaicker(paced);
     doc["paced"] = p;
     std::cout << "\nFrames arriving at 25 fps, " << paced_frames
@@ -1165,6 +1185,25 @@ int main(int argc, char** argv) {
               << p["overview_slices"].get<int64_t>() << " slices between publishes; refreshed "
               << p["refresh_tiles_written"].get<int64_t>() << " level-0 tiles in "
               << p["refresh_slices"].get<int64_t>() << " slices)\n";
+    std::cout << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(14)
+              << "CPU ms/frame" << std::setw(8) << "writer" << std::setw(10) << "tiles/fr"
+              << std::setw(11) << "published" << std::setw(9) << "p50 s" << std::setw(9) << "p99 s"
+              << std::setw(9) << "max s" << std::setw(10) << "RSS MiB" << std::setw(11)
+              << "peak MiB"
+              << "\n";
+    for (const auto& c : p["checkpoints"]) {
+      std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
+                << std::setw(14) << Fixed(c["segment_cpu_ms_per_frame"], 1) << std::setw(8)
+                << Fixed(c["segment_writer_cpu_ms_per_frame"], 1) << std::setw(10)
+                << Fixed(c["segment_tiles_written_per_frame"], 2) << std::setw(11)
+                << c["segment_frames_published"].get<int64_t>() << std::setw(9)
+                << Fixed(c["segment_publish_latency_p50_s"], 3) << std::setw(9)
+                << Fixed(c["segment_publish_latency_p99_s"], 3) << std::setw(9)
+                << Fixed(c["segment_publish_latency_max_s"], 3) << std::setw(10)
+                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+    }
+    std::cout << "(each tenth of the paced flight: CPU and writer CPU ms/frame, tiles written per "
+                 "frame, frames published in it and their publish latency from arrival)\n";
   }
 
   if (!compare.empty()) {

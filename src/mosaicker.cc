@@ -495,7 +495,7 @@ class Mosaicker::Impl : public MosaicSink {
     }
     // Publish on a clock: each frame waits at most one interval plus the writer's work.
     if (!recorded && !replay_) {
-      pending_.push_back({arrival, 0});
+      pending_.push_back({arrival, 0, index});
       if (Clock::now() - last_publish_ >=
           std::chrono::duration<double>(options_.publish_interval_s)) {
         RequestPublishQuiet();
@@ -517,8 +517,8 @@ class Mosaicker::Impl : public MosaicSink {
     if (!store_) return 0;
     if (update_resume_record) store_->SetApplicationState(ApplicationState());
     const int64_t generation = store_->RequestPublish();
-    for (auto& p : pending_) {
-      if (p.second == 0) p.second = generation;
+    for (PendingFrame& p : pending_) {
+      if (p.generation == 0) p.generation = generation;
     }
     last_publish_ = Clock::now();
     return generation;
@@ -1087,18 +1087,24 @@ class Mosaicker::Impl : public MosaicSink {
     if (!store_) return;
     const int64_t published = store_->published_generation();
     const auto now = Clock::now();
-    std::lock_guard<std::mutex> lock(mu_);
-    while (!pending_.empty() && pending_.front().second != 0 &&
-           pending_.front().second <= published) {
-      // From the frame's arrival to the end of the publish that put it on disk (not to this
-      // call, which may come much later, e.g. after Finish's final solve).
-      const auto at = store_->PublishedAt(pending_.front().second);
-      latencies_s_.push_back(
-          std::chrono::duration<double>(at.value_or(now) - pending_.front().first).count());
-      pending_.pop_front();
+    std::vector<std::pair<int64_t, double>> reported;  // For on_frame_published, unlocked.
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      while (!pending_.empty() && pending_.front().generation != 0 &&
+             pending_.front().generation <= published) {
+        // From the frame's arrival to the end of the publish that put it on disk (not to this
+        // call, which may come much later, e.g. after Finish's final solve).
+        const auto at = store_->PublishedAt(pending_.front().generation);
+        const double latency_s =
+            std::chrono::duration<double>(at.value_or(now) - pending_.front().arrival).count();
+        latencies_s_.push_back(latency_s);
+        if (options_.on_frame_published) reported.push_back({pending_.front().index, latency_s});
+        pending_.pop_front();
+      }
+      if (latencies_s_.size() > 200000)
+        latencies_s_.erase(latencies_s_.begin(), latencies_s_.begin() + 100000);
     }
-    if (latencies_s_.size() > 200000)
-      latencies_s_.erase(latencies_s_.begin(), latencies_s_.begin() + 100000);
+    for (const auto& [index, latency_s] : reported) options_.on_frame_published(index, latency_s);
   }
 
   MosaickerOptions options_;
@@ -1142,8 +1148,13 @@ class Mosaicker::Impl : public MosaicSink {
   size_t released_slots_ = 0;
   Clock::time_point last_publish_ = Clock::now();
   mutable std::mutex mu_;
-  std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;      // Kept part of clipped frames.
-  std::deque<std::pair<Clock::time_point, int64_t>> pending_;  // (arrival, generation)
+  std::map<int64_t, std::vector<Eigen::Vector2d>> clips_;  // Kept part of clipped frames.
+  struct PendingFrame {
+    Clock::time_point arrival;
+    int64_t generation = 0;  // The publish that carries it; 0: none asked for yet.
+    int64_t index = 0;
+  };
+  std::deque<PendingFrame> pending_;
   std::vector<double> latencies_s_;
   MosaickerSummary summary_;
   std::function<void(int64_t)> on_published_;

@@ -9,6 +9,7 @@
 #include <malloc.h>
 
 #include <atomic>
+#include <chrono>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -466,6 +467,11 @@ TEST(MosaickerApiTest, FinishPublishesTheLastFramesBeforeTheFinalSolve) {
   options.mode = TileStoreOptions::Mode::kOverwrite;
   options.publish_interval_s = 1e6;          // No publish while pushing: all wait for Finish.
   options.fusion.solve_every_frames = 1000;  // No background solve: only Finish's.
+  std::vector<std::pair<int64_t, double>> published;  // (index, latency) per frame.
+  options.on_frame_published = [&](int64_t index, double latency_s) {
+    published.push_back({index, latency_s});
+  };
+  const auto start = std::chrono::steady_clock::now();
   Mosaicker m(options, sim.camera(), sim.MeasuredPos());
   struct Seen {
     int64_t generation = 0, covered = -1;
@@ -508,6 +514,19 @@ TEST(MosaickerApiTest, FinishPublishesTheLastFramesBeforeTheFinalSolve) {
   EXPECT_GT(seen.back().generation, seen.front().generation);
   EXPECT_EQ(seen.back().optimized_frames, 10);
   EXPECT_EQ(m.summary().frames_placed, 10);
+  // Each frame's publish latency reported once, in push order, the summary's quantiles made of
+  // the same figures; none longer than the whole test has run.
+  const double elapsed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_EQ(published.size(), 10u);
+  double max_latency_s = 0.0;
+  for (int i = 0; i < 10; ++i) {
+    EXPECT_EQ(published[static_cast<size_t>(i)].first, i);
+    EXPECT_GE(published[static_cast<size_t>(i)].second, 0.0);
+    EXPECT_LE(published[static_cast<size_t>(i)].second, elapsed_s);
+    max_latency_s = std::max(max_latency_s, published[static_cast<size_t>(i)].second);
+  }
+  EXPECT_EQ(max_latency_s, m.summary().publish_latency_max_s);
   fs::remove_all(options.store_path);
 }
 

@@ -124,6 +124,12 @@ struct MosaickerOptions {
   // are deferred while the output is behind): bench/flight_bench scores both against the
   // truth. Not called while a resume replays frames (nothing is painted). Empty: not called.
   std::function<void(const FramePlacement&)> on_frame_painted;
+  // Diagnostics: called once for each frame a publish put on disk, with its index and its
+  // publish latency (seconds from its arrival, as given to Push, to the end of that publish:
+  // what MosaickerSummary's publish latency quantiles are made of), in push order, on the
+  // caller's thread at the end of Push, RequestPublish or Finish. For latency over time in a
+  // long run (bench/flight_bench's checkpoints). Empty: not called.
+  std::function<void(int64_t index, double latency_s)> on_frame_published;
 
   // False with a message naming the option when one is out of range.
   bool IsValid(std::string* error) const;
