@@ -136,6 +136,7 @@ struct Tuning {
   int tune_heap = -1;  // MosaickerOptions::tune_heap (0 / 1; -1: the library's default).
   int max_cached_tiles = -1;
   int refresh_slice_tiles = -1;
+  int refresh_quiet_publishes = -1;
   int images_in_memory = -1;  // -1: the library's default.
   int ground_cache_mb = -1;   // The simulator's (the benchmark's input), not the pipeline's.
   // The simulated flight's seed (its noise, POS errors and fractal detail); 0 keeps the
@@ -325,6 +326,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   }
   if (g_tuning.writer_nice >= 0) options.writer_nice = g_tuning.writer_nice;
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
+  if (g_tuning.refresh_quiet_publishes >= 0) {
+    options.refresh_quiet_publishes = g_tuning.refresh_quiet_publishes;
+  }
   if (g_tuning.refresh_slice_tiles >= 0) {
     options.refresh_slice_tiles = g_tuning.refresh_slice_tiles;
   }
@@ -664,6 +668,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"tune_heap", options.tune_heap},
             {"max_cached_tiles", options.max_cached_tiles},
             {"refresh_slice_tiles", options.refresh_slice_tiles},
+            {"refresh_quiet_publishes", options.refresh_quiet_publishes},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
             {"checkpoints", checkpoints}};
@@ -966,6 +971,8 @@ int main(int argc, char** argv) {
       g_tuning.max_cached_tiles = std::stoi(value());
     } else if (a == "--refresh-slice-tiles") {
       g_tuning.refresh_slice_tiles = std::stoi(value());
+    } else if (a == "--refresh-quiet-publishes") {
+      g_tuning.refresh_quiet_publishes = std::stoi(value());
     } else if (a == "--images-in-memory") {
       g_tuning.images_in_memory = std::stoi(value());
     } else if (a == "--ground-cache-mb") {
@@ -1008,7 +1015,7 @@ int main(int argc, char** argv) {
                    "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
                    "[--overview-interval S] [--tile-size N] "
                    "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
-                   "[--refresh-slice-tiles N] "
+                   "[--refresh-slice-tiles N] [--refresh-quiet-publishes N] "
                    "[--images-in-memory N] "
                    "[--ground-cache-mb N] "
                    "[--mmap-threshold BYTES] "

@@ -306,6 +306,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("writer_nice " + std::to_string(writer_nice) + " must be in 0..19");
   }
   if (refresh_slice_tiles < 0) return fail("refresh_slice_tiles must be >= 0");
+  if (refresh_quiet_publishes < 1 || refresh_quiet_publishes > 1000) {
+    return fail("refresh_quiet_publishes must be in 1..1000");
+  }
   if (max_cached_tiles < 1 || max_cached_tiles > 65536) {
     return fail("max_cached_tiles must be in 1..65536");
   }
@@ -857,6 +860,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.overview_interval_s = options_.overview_interval_s;
     store_options.max_cached_tiles = static_cast<size_t>(options_.max_cached_tiles);
     store_options.refresh_slice_tiles = options_.refresh_slice_tiles;
+    store_options.refresh_quiet_publishes = options_.refresh_quiet_publishes;
     store_options.writer_nice = options_.writer_nice;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);

@@ -403,10 +403,6 @@ bool DecodeBandDirect(GDALDatasetH dataset, int band_index, const std::vector<GB
   return true;
 }
 
-}  // namespace
-
-namespace {
-
 // The running sum of a row of 8- or 16-bit samples, wrapping, in place.
 template <typename T>
 void RunningSum(T* row, int n) {
@@ -1317,10 +1313,6 @@ void FillFeature(OGRFeature* feature, const FrameRecord& record, const OGRSpatia
   polygon.assignSpatialReference(const_cast<OGRSpatialReference*>(srs));
   feature->SetGeometry(&polygon);
 }
-
-}  // namespace
-
-namespace {
 
 // The SQLite settings of one frames.gpkg connection (GDAL reads them when it opens the file),
 // set for this thread only and cleared when the scope ends.

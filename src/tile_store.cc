@@ -26,6 +26,7 @@
 #include <optional>
 #include <set>
 #include <thread>
+#include <type_traits>
 #include <unordered_map>
 
 #include "irmosaic/error.h"
@@ -95,6 +96,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
     problem = "overview_slice_tiles must be at least 1";
   } else if (refresh_slice_tiles < 0) {
     problem = "refresh_slice_tiles must be >= 0 (0: refreshed tiles go with each publish)";
+  } else if (refresh_quiet_publishes < 1 || refresh_quiet_publishes > 1000) {
+    problem = "refresh_quiet_publishes must be in 1..1000 (1: ready after the next publish)";
   } else if (max_cached_tiles < 4) {
     problem = "max_cached_tiles must be at least 4";
   } else if (writer_nice < 0 || writer_nice > 19) {
@@ -153,33 +156,44 @@ int MaxLevelsFor(int tile_size) {
 int64_t FloorDiv(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
 #if CV_SIMD128
-// BlendInto's rule for 8 UInt16 samples from x on, in SSE2 vectors with the scalar loop's float
-// operations in its order and its rounding (cvRound: to nearest even), so the result is identical.
-// Returns whether any sample was painted.
-bool BlendEight(const uint16_t* src, const float* w, uint16_t* dst, uchar* covered) {
+// Eight samples widened to 16 bits, and back.
+cv::v_uint16x8 LoadEight(const uint16_t* p) { return cv::v_load(p); }
+cv::v_uint16x8 LoadEight(const uchar* p) {
+  uint64_t word = 0;  // Copied to an aligned word: v_load_expand reads the bytes as one load.
+  std::memcpy(&word, p, sizeof(word));
+  return cv::v_load_expand(reinterpret_cast<const uchar*>(&word));
+}
+void StoreEight(uint16_t* p, const cv::v_uint16x8& v) { cv::v_store(p, v); }
+void StoreEight(uchar* p, const cv::v_uint16x8& v) { cv::v_pack_store(p, v); }
+
+// BlendInto's rule for 8 Byte or UInt16 samples from x on, in SSE2 vectors with the scalar loop's
+// float operations in its order and its rounding (cvRound: to nearest even, then saturated to
+// the type), so the result is identical. Returns whether any sample was painted.
+template <typename T>
+bool BlendEight(const T* src, const float* w, T* dst, uchar* covered) {
+  static_assert(std::is_same_v<T, uint16_t> || std::is_same_v<T, uint8_t>);
+  constexpr int kMax = std::numeric_limits<T>::max();
   const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
   const cv::v_float32x4 w0 = cv::v_load(w), w1 = cv::v_load(w + 4);
   const cv::v_int32x4 paint0 = cv::v_reinterpret_as_s32(w0 > zero);  // Also false for NaN.
   const cv::v_int32x4 paint1 = cv::v_reinterpret_as_s32(w1 > zero);
   if (!cv::v_check_any(paint0) && !cv::v_check_any(paint1)) return false;
   cv::v_uint32x4 s0, s1, d0, d1, c0, c1;
-  cv::v_expand(cv::v_load(src), s0, s1);
-  cv::v_expand(cv::v_load(dst), d0, d1);
-  uint64_t word = 0;  // Copied to an aligned word: v_load_expand reads the bytes as one load.
-  std::memcpy(&word, covered, sizeof(word));
-  cv::v_expand(cv::v_load_expand(reinterpret_cast<const uchar*>(&word)), c0, c1);
+  cv::v_expand(LoadEight(src), s0, s1);
+  cv::v_expand(LoadEight(dst), d0, d1);
+  cv::v_expand(LoadEight(covered), c0, c1);
   const auto blend = [&](const cv::v_float32x4& wx, const cv::v_uint32x4& s,
                          const cv::v_uint32x4& d, const cv::v_uint32x4& c,
                          const cv::v_int32x4& paint) {
     const cv::v_int32x4 si = cv::v_reinterpret_as_s32(s), di = cv::v_reinterpret_as_s32(d);
     const cv::v_float32x4 mixed = wx * cv::v_cvt_f32(si) + (one - wx) * cv::v_cvt_f32(di);
     const cv::v_int32x4 rounded =
-        cv::v_min(cv::v_max(cv::v_round(mixed), cv::v_setzero_s32()), cv::v_setall_s32(65535));
+        cv::v_min(cv::v_max(cv::v_round(mixed), cv::v_setzero_s32()), cv::v_setall_s32(kMax));
     const cv::v_int32x4 whole =
         cv::v_reinterpret_as_s32(c == cv::v_setzero_u32()) | cv::v_reinterpret_as_s32(wx >= one);
     return cv::v_select(paint, cv::v_select(whole, si, rounded), di);
   };
-  cv::v_store(dst, cv::v_pack_u(blend(w0, s0, d0, c0, paint0), blend(w1, s1, d1, c1, paint1)));
+  StoreEight(dst, cv::v_pack_u(blend(w0, s0, d0, c0, paint0), blend(w1, s1, d1, c1, paint1)));
   const cv::v_int32x4 full = cv::v_setall_s32(255);
   const cv::v_uint16x8 cov = cv::v_pack_u(cv::v_select(paint0, full, cv::v_reinterpret_as_s32(c0)),
                                           cv::v_select(paint1, full, cv::v_reinterpret_as_s32(c1)));
@@ -227,7 +241,7 @@ bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patc
     uchar* covered = alpha->ptr<uchar>(tile_roi.y + y) + tile_roi.x;
     int x = 0;
 #if CV_SIMD128
-    if constexpr (std::is_same_v<T, uint16_t>) {
+    if constexpr (std::is_same_v<T, uint16_t> || std::is_same_v<T, uint8_t>) {
       for (; x + 8 <= patch_roi.width; x += 8) {
         painted |= BlendEight(src + x, w + x, dst + x, covered + x);
       }
@@ -406,10 +420,13 @@ struct TileStore::Impl {
   bool slice_turn = false;      // The writer published last: a slice goes before the next publish.
   bool refresh_turn = false;    // ... and a refresh slice.
   bool refresh_paused = false;  // A refresh slice failed: none until the next publish.
-  // A refreshed tile is written by a slice once a publish passed since it was last painted, so
-  // that a tile the re-renders keep painting is written no more often than with each publish.
+  // A refreshed tile is written by a slice once refresh_quiet_publishes publishes passed since
+  // it was last painted, so that a tile the re-renders keep painting is written no more often
+  // than that.
   bool RefreshReady(const CachedTile& tile) const {
-    return tile.refreshed && tile.paint_epoch < publish_epoch;
+    return tile.refreshed &&
+           tile.paint_epoch + static_cast<uint64_t>(options.refresh_quiet_publishes) <=
+               publish_epoch;
   }
   bool RefreshRunnable() const {
     if (refreshed_count == 0 || refresh_paused || options.refresh_slice_tiles == 0) return false;

@@ -494,21 +494,29 @@ TEST(TileStoreTest, BlendFollowsTheContractAndReadsBack) {
 // The UInt16 blend runs 8 samples per SSE2 vector and the rest one by one: both must follow the
 // contract to the last count, with weights of every kind (NaN, negative, 0, fractional, 1, > 1),
 // values at both ends of the range, over covered and uncovered samples, across a tile border.
-TEST(TileStoreTest, UInt16BlendMatchesTheContractExactly) {
-  const fs::path dir = FreshDir("blend16") / "s.irmosaic";
-  auto store = TileStore::Open(Options(dir, 64), Georef());
+// The blend's rule, sample by sample, for the integer types (SIMD for 8 samples at a time, the
+// scalar loop for the rest; the same float operations and rounding).
+template <typename T>
+void ExpectBlendMatchesTheContractExactly(PixelType type, const std::string& name) {
+  SCOPED_TRACE(name);
+  constexpr int kMax = std::numeric_limits<T>::max();
+  const int depth = cv::DataType<T>::depth;
+  const fs::path dir = FreshDir(name) / "s.irmosaic";
+  TileStoreOptions options = Options(dir, 64);
+  options.pixel_type = type;
+  auto store = TileStore::Open(options, Georef());
   std::mt19937 random(7);
   const cv::Rect area(50, 30, 61, 45);  // Odd width: vector and scalar samples, 4 tiles.
-  cv::Mat base(area.size(), CV_16U), base_w(area.size(), CV_32F);
-  cv::randu(base, 0, 65536);
+  cv::Mat base(area.size(), depth), base_w(area.size(), CV_32F);
+  cv::randu(base, 0, kMax + 1);
   for (int y = 0; y < area.height; ++y) {
     for (int x = 0; x < area.width; ++x) base_w.at<float>(y, x) = random() % 2 ? 1.0f : 0.0f;
   }
-  base.at<uint16_t>(0, 0) = 65535;
+  base.at<T>(0, 0) = kMax;
   base_w.at<float>(0, 0) = 1.0f;
   store->Paint(base, base_w, area.tl());
-  cv::Mat patch(area.size(), CV_16U), w(area.size(), CV_32F);
-  cv::randu(patch, 0, 65536);
+  cv::Mat patch(area.size(), depth), w(area.size(), CV_32F);
+  cv::randu(patch, 0, kMax + 1);
   const std::array<float, 8> kinds = {
       std::numeric_limits<float>::quiet_NaN(), -0.5f, 0.0f, 1e-6f, 0.5f, 1.0f, 1.5f, 0.0f};
   for (int y = 0; y < area.height; ++y) {
@@ -518,29 +526,34 @@ TEST(TileStoreTest, UInt16BlendMatchesTheContractExactly) {
           pick < 8 ? kinds[pick] : std::uniform_real_distribution<float>(0.0f, 1.0f)(random);
     }
   }
-  patch.at<uint16_t>(0, 0) = 0;
-  w.at<float>(0, 0) = 0.999f;  // Rounds to 65535 - 65535 * 0.999 = 65.5..: near a half.
+  patch.at<T>(0, 0) = 0;
+  w.at<float>(0, 0) = 0.999f;  // Near a half: 65535 * 0.001 = 65.5.., 255 * 0.001 = 0.255.
   store->Paint(patch, w, area.tl());
   cv::Mat image, coverage;
   store->ReadWindow(area, &image, &coverage);
+  ASSERT_EQ(image.depth(), depth);
   int wrong = 0;
   for (int y = 0; y < area.height; ++y) {
     for (int x = 0; x < area.width; ++x) {
       const float wx = w.at<float>(y, x);
       const bool was = base_w.at<float>(y, x) > 0.0f;
-      uint16_t expected = was ? base.at<uint16_t>(y, x) : 0;
+      T expected = was ? base.at<T>(y, x) : 0;
       if (wx > 0.0f) {
         expected = !was || wx >= 1.0f
-                       ? patch.at<uint16_t>(y, x)
-                       : cv::saturate_cast<uint16_t>(
-                             wx * static_cast<float>(patch.at<uint16_t>(y, x)) +
-                             (1.0f - wx) * static_cast<float>(base.at<uint16_t>(y, x)));
+                       ? patch.at<T>(y, x)
+                       : cv::saturate_cast<T>(wx * static_cast<float>(patch.at<T>(y, x)) +
+                                              (1.0f - wx) * static_cast<float>(base.at<T>(y, x)));
       }
       const bool covered = was || wx > 0.0f;
-      wrong += image.at<uint16_t>(y, x) != expected || (coverage.at<uchar>(y, x) != 0) != covered;
+      wrong += image.at<T>(y, x) != expected || (coverage.at<uchar>(y, x) != 0) != covered;
     }
   }
   EXPECT_EQ(wrong, 0) << "of " << area.area() << " samples";
+}
+
+TEST(TileStoreTest, IntegerBlendMatchesTheContractExactly) {
+  ExpectBlendMatchesTheContractExactly<uint16_t>(PixelType::kUInt16, "blend16");
+  ExpectBlendMatchesTheContractExactly<uint8_t>(PixelType::kByte, "blend8");
 }
 
 // The caller's state goes into manifest.json as the text it was given (the Mosaicker's is its
@@ -1447,6 +1460,49 @@ TEST(TileStoreTest, RefreshedTilesAreWrittenInSlicesAfterThePublish) {
   const Raster r = ReadThroughGdal(dir / "mosaic.vrt");
   ExpectTileHolds(r, kTile, 1, 1, 5);
   ExpectTileHolds(r, kTile, 0, 0, 6);
+}
+
+// refresh_quiet_publishes: a refreshed tile is written once that many publishes passed without
+// it being painted, so a tile repainted at every publish (re-renders of neighbouring frames)
+// waits, and is written once, with its last values, when they stop.
+TEST(TileStoreTest, ARefreshedTileWaitsForItsQuietPublishesAndIsWrittenOnce) {
+  constexpr int kTile = 64;
+  const fs::path dir = FreshDir("refresh_quiet") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, kTile);
+  options.pixel_type = PixelType::kByte;
+  options.refresh_slice_tiles = 1;
+  options.refresh_quiet_publishes = 3;
+  auto store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {0, 0}, kTile, 1);
+  store->WaitPublished(store->RequestPublish());
+  const TileStore::Stats before = store->stats();
+  // Repainted before each publish: never quiet. A slice ready after publish k runs before
+  // publish k + 1 (slices take their turn first), so none ran by the time the next is out.
+  for (int round = 0; round < 4; ++round) {
+    PaintSquare(store.get(), {0, 0}, kTile, 10 + round, 1.0f, PaintKind::kRefresh);
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(store->stats().refresh_tiles_written, before.refresh_tiles_written) << round;
+    EXPECT_EQ(store->stats().refresh_waiting, 1u) << round;
+  }
+  // Unpainted: last painted before the fourth round's publish, it is ready after the third
+  // publish from there. Each check below sees the slices that followed the publish before.
+  for (int quiet = 1; quiet < 3; ++quiet) {
+    store->WaitPublished(store->RequestPublish());
+    EXPECT_EQ(store->stats().refresh_tiles_written, before.refresh_tiles_written) << quiet;
+  }
+  // Written once, with the last values, by the slice after the third.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (store->stats().refresh_tiles_written == before.refresh_tiles_written &&
+         std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  const TileStore::Stats after = store->stats();
+  EXPECT_EQ(after.refresh_tiles_written - before.refresh_tiles_written, 1);
+  EXPECT_EQ(after.refresh_waiting, 0u);
+  EXPECT_EQ(after.tiles_written - after.overview_tiles_written,
+            before.tiles_written - before.overview_tiles_written + 1);
+  ExpectTileHolds(ReadThroughGdal(dir / "mosaic.vrt"), kTile, 0, 0, 13);
+  store->Close();
 }
 
 // More refreshed tiles waiting than max_cached_tiles (they stay in memory until written): the

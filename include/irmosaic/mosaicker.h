@@ -97,6 +97,9 @@ struct MosaickerOptions {
   // tiles each, so that a publish carries new frames only (TileStoreOptions::refresh_slice_tiles;
   // 0: with the next publish, as new frames).
   int refresh_slice_tiles = 8;
+  // Publishes a re-rendered tile waits unpainted before a slice writes it
+  // (TileStoreOptions::refresh_quiet_publishes; 1: after the next publish).
+  int refresh_quiet_publishes = 1;
   // Frame images the fusion keeps in memory (FusionOptions::images_in_memory, which this
   // replaces): the newest N; the older ones it still holds for re-rendering (up to the
   // optimization window, 300 frames) wait in an unnamed file in the store folder, deleted with

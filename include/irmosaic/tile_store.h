@@ -68,6 +68,14 @@ struct TileStoreOptions {
   // takes the least recently painted of them, down to this many fewer than max_cached_tiles;
   // Close() takes them all. 0: every publish writes every changed tile.
   int refresh_slice_tiles = 8;
+  // A refreshed tile is ready for a slice once this many publishes have passed since it was last
+  // painted (1: the next publish): the re-renders of neighbouring frames (a sweep's frames
+  // leaving the optimization window one per new frame, a solve's burst) repaint the same tiles
+  // over a few seconds, and a tile written once they are done is written once, not once per
+  // publish. The bound above still applies (waiting tiles stay in memory): at 25 fps the tiles
+  // re-rendered within 2 s outnumber the default bound, so larger values made the publishes take
+  // them (latency up, writer no cheaper; docs/benchmarks.md, "Session 35").
+  int refresh_quiet_publishes = 1;
   // Memory bound: clean tiles beyond this leave memory, and an overview update starts early when
   // more than 4 times this many tiles wait for it (halved; in slices, or within the publish past
   // 8 times, counting an update under way).
