@@ -1402,6 +1402,18 @@ void ExpectTileHolds(const Raster& r, int tile, int row, int col, int value) {
       << "tile (" << row << ", " << col << ") should hold " << value;
 }
 
+// Waits (at most 60 s) until refresh slices wrote at least `tiles` tiles since `before`; returns
+// the store's stats then.
+TileStore::Stats WaitForRefreshWrites(TileStore* store, const TileStore::Stats& before,
+                                      int64_t tiles) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (store->stats().refresh_tiles_written - before.refresh_tiles_written < tiles &&
+         std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  return store->stats();
+}
+
 // Refreshes (PaintKind::kRefresh, the optimizer's re-renders) of tiles on disk are not written
 // by the publish after them but by refresh slices right after it, in place: the generation
 // stays, and the publish carries only new content (and refreshes of tiles not yet on disk, which
@@ -1428,12 +1440,7 @@ TEST(TileStoreTest, RefreshedTilesAreWrittenInSlicesAfterThePublish) {
   const int64_t generation = store->RequestPublish();
   store->WaitPublished(generation);
   // The slices follow the publish, one tile each.
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
-  while (store->stats().refresh_tiles_written - before.refresh_tiles_written < 2 &&
-         std::chrono::steady_clock::now() < deadline) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  TileStore::Stats after = store->stats();
+  TileStore::Stats after = WaitForRefreshWrites(store.get(), before, 2);
   EXPECT_EQ(after.refresh_tiles_written - before.refresh_tiles_written, 2);
   EXPECT_EQ(after.refresh_slices - before.refresh_slices, 2);
   EXPECT_EQ(after.refresh_waiting, 0u);
@@ -1491,12 +1498,7 @@ TEST(TileStoreTest, ARefreshedTileWaitsForItsQuietPublishesAndIsWrittenOnce) {
     EXPECT_EQ(store->stats().refresh_tiles_written, before.refresh_tiles_written) << quiet;
   }
   // Written once, with the last values, by the slice after the third.
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
-  while (store->stats().refresh_tiles_written == before.refresh_tiles_written &&
-         std::chrono::steady_clock::now() < deadline) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  const TileStore::Stats after = store->stats();
+  const TileStore::Stats after = WaitForRefreshWrites(store.get(), before, 1);
   EXPECT_EQ(after.refresh_tiles_written - before.refresh_tiles_written, 1);
   EXPECT_EQ(after.refresh_waiting, 0u);
   EXPECT_EQ(after.tiles_written - after.overview_tiles_written,
