@@ -51,6 +51,7 @@
 #include <opencv2/imgproc.hpp>
 #include <opencv2/stitching.hpp>
 #include <optional>
+#include <set>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -273,6 +274,78 @@ struct RunConfig {
 };
 
 // One Mosaicker run over a simulated flight; returns its figures.
+// The slowest frame of each of the `count` publishes that put the slowest frames on disk, each
+// traced to its parts: how late the
+// pipeline took it, its Push, the wait from the end of its Push to the start of the publish that
+// put it on disk (the publish clock, the writer's queue: its slices since the previous publish
+// are named), and that publish's own time and work (PublishReport). The publish is the one whose
+// end is the frame's arrival plus its latency (the time TileStore::PublishedAt gives).
+nlohmann::json SlowestFrames(const std::vector<Clock::time_point>& arrival_of,
+                             const std::vector<Clock::time_point>& push_start_of,
+                             const std::vector<Clock::time_point>& push_end_of,
+                             const std::vector<double>& latency_of,
+                             std::vector<irmosaic::PublishReport> reports, size_t count) {
+  std::vector<size_t> order;
+  for (size_t k = 0; k < latency_of.size(); ++k) {
+    if (std::isfinite(latency_of[k])) order.push_back(k);
+  }
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return latency_of[a] > latency_of[b]; });
+  std::sort(reports.begin(), reports.end(),
+            [](const auto& a, const auto& b) { return a.finished < b.finished; });
+  const auto seconds = [](Clock::duration d) { return std::chrono::duration<double>(d).count(); };
+  nlohmann::json out = nlohmann::json::array();
+  // The slowest frame of each of the `count` slowest publishes (the frames a stall delays go
+  // out together: one line per event).
+  std::set<int64_t> publishes_listed;
+  for (size_t n = 0; n < order.size() && out.size() < count; ++n) {
+    const size_t k = order[n];
+    const Clock::time_point published =
+        arrival_of[k] +
+        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(latency_of[k]));
+    // The report whose end is nearest the frame's publication (equal up to rounding).
+    auto it = std::lower_bound(
+        reports.begin(), reports.end(), published,
+        [](const irmosaic::PublishReport& r, Clock::time_point t) { return r.finished < t; });
+    if (it == reports.end() ||
+        (it != reports.begin() && published - std::prev(it)->finished < it->finished - published)) {
+      if (it != reports.begin()) --it;
+    }
+    nlohmann::json frame = {{"frame", k},
+                            {"latency_s", latency_of[k]},
+                            {"intake_s", seconds(push_start_of[k] - arrival_of[k])},
+                            {"push_s", seconds(push_end_of[k] - push_start_of[k])}};
+    if (it != reports.end() && std::abs(seconds(it->finished - published)) < 1e-3) {
+      const irmosaic::PublishReport& r = *it;
+      if (!publishes_listed.insert(r.generation).second) continue;
+      const Clock::time_point previous_end =
+          it == reports.begin() ? r.first_request : std::prev(it)->finished;
+      frame["to_publish_start_s"] = seconds(r.started - push_end_of[k]);
+      frame["publish"] = {
+          {"generation", r.generation},
+          {"wall_s", seconds(r.finished - r.started)},
+          {"first_request_after_arrival_s", seconds(r.first_request - arrival_of[k])},
+          {"last_request_after_arrival_s", seconds(r.last_request - arrival_of[k])},
+          {"gap_after_previous_publish_s", seconds(r.started - previous_end)},
+          {"refresh_slices", r.refresh_slices},
+          {"overview_slices", r.overview_slices},
+          {"slices_s", r.slices_ms / 1000.0},
+          {"level0_tiles", r.level0_tiles},
+          {"refreshed_tiles", r.refreshed_tiles},
+          {"overview_update", r.overview_update},
+          {"overview_update_early", r.overview_update_early},
+          {"overview_update_in_publish", r.overview_update_in_publish},
+          {"overview_tiles", r.overview_tiles},
+          {"frames_gpkg", r.frames_gpkg},
+          {"index_s", r.index_ms / 1000.0},
+          {"cpu_s", r.cpu_ms / 1000.0},
+          {"run_queue_s", r.run_queue_ms / 1000.0}};
+    }
+    out.push_back(frame);
+  }
+  return out;
+}
+
 nlohmann::json RunMosaicker(const RunConfig& config) {
   irmosaic::FlightSimulator sim(FlightOptions(config.frames));
   MosaickerOptions options;
@@ -354,8 +427,24 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   std::vector<double> published_latency_s;
   published_latency_s.reserve(static_cast<size_t>(config.frames));  // Memory figures flat.
   size_t segment_latency_begin = 0;
-  options.on_frame_published = [&](int64_t, double latency_s) {
+  // Each frame's arrival, the start and end of its Push, and its publish latency, by frame
+  // index from the first one (preallocated, as `painted`), and the store's report of each
+  // publish (writer thread): the slowest frames' latencies traced to their parts at the end.
+  const size_t n_frames = static_cast<size_t>(config.frames);
+  std::vector<Clock::time_point> arrival_of(n_frames), push_start_of(n_frames),
+      push_end_of(n_frames);
+  std::vector<double> latency_of(n_frames, std::numeric_limits<double>::quiet_NaN());
+  std::vector<irmosaic::PublishReport> publish_reports;
+  publish_reports.reserve(n_frames / 4 + 64);
+  std::mutex reports_mu;
+  options.on_frame_published = [&](int64_t index, double latency_s) {
     published_latency_s.push_back(latency_s);
+    const int64_t k = index - g_tuning.first_frame;
+    if (k >= 0 && k < config.frames) latency_of[static_cast<size_t>(k)] = latency_s;
+  };
+  options.on_publish = [&](const irmosaic::PublishReport& report) {
+    std::lock_guard<std::mutex> lock(reports_mu);
+    publish_reports.push_back(report);
   };
   std::filesystem::remove_all(config.store);
   irmosaic::Placements truth;
@@ -375,7 +464,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   double last_wall = 0.0, last_cpu = 0.0, producer_cpu = 0.0, push_wall_s = 0.0;
   std::vector<double> intake_lag_s;
   double push_cpu_s = 0.0;  // The caller's thread inside Push (registration, render, paint).
-  double last_push_cpu = 0.0, last_writer_cpu_ms = 0.0, last_index_ms = 0.0;
+  double last_push_cpu = 0.0, last_writer_cpu_ms = 0.0, last_index_ms = 0.0,
+         last_paint_wait_ms = 0.0;
   int64_t last_tiles_written = 0;
   int last_frames = 0;
   Clock::time_point start;
@@ -394,6 +484,11 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
       const irmosaic::PushResult r =
           mosaicker.Push(frame.index, frame.time_s, frame.image, arrival);
       push_cpu_s += ThreadCpuSeconds(pthread_self()) - push_cpu0;
+      if (const int64_t k = frame.index - g_tuning.first_frame; k >= 0 && k < config.frames) {
+        arrival_of[static_cast<size_t>(k)] = arrival;
+        push_start_of[static_cast<size_t>(k)] = t0;
+        push_end_of[static_cast<size_t>(k)] = Clock::now();
+      }
       push_wall_s += Since(t0);
       ++pushed;
       if (r.placed()) ++placed;
@@ -439,6 +534,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              {"segment_publish_latency_p50_s", Quantile(segment_latency, 0.50)},
              {"segment_publish_latency_p99_s", Quantile(segment_latency, 0.99)},
              {"segment_publish_latency_max_s", Quantile(segment_latency, 1.0)},
+             // The caller's Paint waiting for the writer (the store's back-pressure).
+             {"segment_paint_wait_s",
+              (store_now.paint_wait_ms_total - last_paint_wait_ms) / 1000.0},
              {"segment_tiles_written_per_frame",
               static_cast<double>(store_now.tiles_written - last_tiles_written) /
                   frames_in_segment},
@@ -476,6 +574,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
         last_push_cpu = push_cpu_s;
         last_writer_cpu_ms = store_now.writer_cpu_ms;
         last_index_ms = store_now.index_ms_total;
+        last_paint_wait_ms = store_now.paint_wait_ms_total;
         last_tiles_written = store_now.tiles_written;
         last_frames = static_cast<int>(pushed);
         ++next_mark;
@@ -570,6 +669,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
                             {"optimized_times", x.optimized_times},
                             {"note", x.note}});
     }
+    const nlohmann::json slowest =
+        SlowestFrames(arrival_of, push_start_of, push_end_of, latency_of, publish_reports, 8);
     int64_t store_bytes = 0;
     for (const auto& e : std::filesystem::recursive_directory_iterator(config.store)) {
       if (e.is_regular_file()) store_bytes += static_cast<int64_t>(e.file_size());
@@ -600,6 +701,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"writer_busy_ms_per_frame", st.writer_busy_ms / config.frames},
             {"writer_cpu_ms_per_frame", st.writer_cpu_ms / config.frames},
             {"paint_ms_per_frame", st.paint_ms_total / config.frames},
+            {"paint_waits", st.paint_waits},
+            {"paint_wait_s", st.paint_wait_ms_total / 1000.0},
             {"tiles_written", st.tiles_written},
             {"overview_tiles_written", st.overview_tiles_written},
             {"publishes", st.publishes},
@@ -671,6 +774,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"refresh_quiet_publishes", options.refresh_quiet_publishes},
             {"simulator_cache_mb_bound", sim.options().ground_cache_mb},
             {"peak_rss_mib", StatusMiB("VmHWM")},
+            {"slowest_frames", slowest},
             {"checkpoints", checkpoints}};
   }
 }
@@ -867,6 +971,39 @@ std::string Fixed(double v, int digits) {
   std::ostringstream s;
   s << std::fixed << std::setprecision(digits) << v;
   return s.str();
+}
+
+// The slowest frames' latencies by part (SlowestFrames), one line each.
+void PrintSlowestFrames(const nlohmann::json& slowest) {
+  if (slowest.empty()) return;
+  std::cout << "slowest frames: latency = taken late + Push + to the publish's start + publish "
+               "(s); the publish's work; the writer's slices before it\n";
+  for (const auto& f : slowest) {
+    std::cout << "  frame " << f["frame"].get<int64_t>() << ": " << Fixed(f["latency_s"], 3)
+              << " = " << Fixed(f["intake_s"], 3) << " + " << Fixed(f["push_s"], 3);
+    if (!f.contains("publish")) {
+      std::cout << " + (its publish not reported)\n";
+      continue;
+    }
+    const auto& r = f["publish"];
+    std::cout << " + " << Fixed(f["to_publish_start_s"], 3) << " + " << Fixed(r["wall_s"], 3)
+              << "; " << r["level0_tiles"].get<int>() << " level-0 tiles ("
+              << r["refreshed_tiles"].get<int>() << " refreshed)";
+    if (r["overview_update_in_publish"].get<bool>()) {
+      std::cout << ", overview update inside (" << r["overview_tiles"].get<int>() << " tiles)";
+    } else if (r["overview_update"].get<bool>()) {
+      std::cout << ", overview update started"
+                << (r["overview_update_early"].get<bool>() ? " early" : "");
+    }
+    if (r["frames_gpkg"].get<bool>()) std::cout << ", frames.gpkg";
+    std::cout << ", index " << Fixed(r["index_s"], 3) << " s, CPU " << Fixed(r["cpu_s"], 3)
+              << " s, waiting for a CPU " << Fixed(r["run_queue_s"], 3) << " s; requests "
+              << Fixed(r["first_request_after_arrival_s"], 3) << " .. "
+              << Fixed(r["last_request_after_arrival_s"], 3) << " s after arrival; "
+              << r["refresh_slices"].get<int>() << " refresh + " << r["overview_slices"].get<int>()
+              << " overview slices (" << Fixed(r["slices_s"], 3) << " s) in the "
+              << Fixed(r["gap_after_previous_publish_s"], 3) << " s since the previous publish\n";
+  }
 }
 
 std::string MachineLine() {
@@ -1195,8 +1332,8 @@ int main(int argc, char** argv) {
     std::cout << std::setw(8) << "% done" << std::setw(9) << "frames" << std::setw(14)
               << "CPU ms/frame" << std::setw(8) << "writer" << std::setw(10) << "tiles/fr"
               << std::setw(11) << "published" << std::setw(9) << "p50 s" << std::setw(9) << "p99 s"
-              << std::setw(9) << "max s" << std::setw(10) << "RSS MiB" << std::setw(11)
-              << "peak MiB"
+              << std::setw(9) << "max s" << std::setw(9) << "waited" << std::setw(10) << "RSS MiB"
+              << std::setw(11) << "peak MiB"
               << "\n";
     for (const auto& c : p["checkpoints"]) {
       std::cout << std::setw(8) << Fixed(c["percent"], 0) << std::setw(9) << c["frames"].get<int>()
@@ -1206,11 +1343,15 @@ int main(int argc, char** argv) {
                 << c["segment_frames_published"].get<int64_t>() << std::setw(9)
                 << Fixed(c["segment_publish_latency_p50_s"], 3) << std::setw(9)
                 << Fixed(c["segment_publish_latency_p99_s"], 3) << std::setw(9)
-                << Fixed(c["segment_publish_latency_max_s"], 3) << std::setw(10)
-                << Fixed(c["rss_mib"], 0) << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
+                << Fixed(c["segment_publish_latency_max_s"], 3) << std::setw(9)
+                << Fixed(c["segment_paint_wait_s"], 2) << std::setw(10) << Fixed(c["rss_mib"], 0)
+                << std::setw(11) << Fixed(c["peak_rss_mib"], 0) << "\n";
     }
     std::cout << "(each tenth of the paced flight: CPU and writer CPU ms/frame, tiles written per "
-                 "frame, frames published in it and their publish latency from arrival)\n";
+                 "frame, frames published in it and their publish latency from arrival; waited: "
+                 "seconds the "
+                 "caller's Paint waited for the writer, the store's back-pressure)\n";
+    PrintSlowestFrames(p["slowest_frames"]);
   }
 
   if (!compare.empty()) {

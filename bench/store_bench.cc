@@ -269,8 +269,9 @@ double ThreadCpuMs() {
 // halved for the overview above (into pooled buffers, as the writer does). CPU ms per tile, the
 // minimum over `rounds` rounds of `count` operations each (the VM's timing noise).
 struct TileCost {
-  double write_ms = 0, read_ms = 0, read_gdal_ms = 0, halve_ms = 0, halve_edge_ms = 0;
-  int64_t bytes = 0;
+  double write_ms = 0, write_gdal_ms = 0, read_ms = 0, read_gdal_ms = 0, halve_ms = 0,
+         halve_edge_ms = 0;
+  int64_t bytes = 0, gdal_bytes = 0;
 };
 
 TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int count, int rounds,
@@ -294,7 +295,7 @@ TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int co
   double gt[6];
   st::TileGeoTransform(0.5, size, 0, {1, 2}, gt);
   st::TilePools pools(size, type, 4);  // As the writer halves.
-  TileCost best{1e30, 1e30, 1e30, 1e30, 1e30, 0};
+  TileCost best{1e30, 1e30, 1e30, 1e30, 1e30, 1e30, 0, 0};
   // A tile at the mosaic's edge: a footprint's straight border across it, covered on one side.
   st::TileImage edge{tile.data.clone(), cv::Mat::zeros(size, size, CV_8U)};
   const std::vector<cv::Point> covered = {{0, 0}, {size, 0}, {size, size / 3}, {0, size}};
@@ -305,6 +306,13 @@ TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int co
     double t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) best.bytes = st::WriteTileAtomic(path, tile, gt, settings);
     best.write_ms = std::min(best.write_ms, (ThreadCpuMs() - t0) / count);
+    // The same tile through GDAL's GTiff driver (the encoder before session 36).
+    st::TileWriteSettings by_gdal = settings;
+    by_gdal.encoding = st::TileEncoding::kGdal;
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) best.gdal_bytes = st::WriteTileAtomic(path, tile, gt, by_gdal);
+    best.write_gdal_ms = std::min(best.write_gdal_ms, (ThreadCpuMs() - t0) / count);
+    st::WriteTileAtomic(path, tile, gt, settings);  // What the reads below read.
     t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) st::ReadTile(path, size, type);
     best.read_ms = std::min(best.read_ms, (ThreadCpuMs() - t0) / count);
@@ -420,8 +428,9 @@ int main(int argc, char** argv) {
   for (const auto& [name, cost] : {std::pair{"UInt16", tile_cost}, std::pair{"Byte", tile_cost8}}) {
     std::cout << "one 512 x 512 " << name << " tile (ZSTD 1), CPU ms on one thread: write "
               << std::setprecision(2) << cost.write_ms << " (" << cost.bytes / 1024
-              << " KiB), read back " << cost.read_ms << " (through GDAL's decoding "
-              << cost.read_gdal_ms << "), halve " << cost.halve_ms
+              << " KiB; through GDAL's encoding " << cost.write_gdal_ms << ", "
+              << cost.gdal_bytes / 1024 << " KiB), read back " << cost.read_ms
+              << " (through GDAL's decoding " << cost.read_gdal_ms << "), halve " << cost.halve_ms
               << " (an edge tile, half covered " << cost.halve_edge_ms
               << ") (minimum of 5 rounds of 40)\n";
   }
@@ -436,6 +445,8 @@ int main(int argc, char** argv) {
         << nlohmann::json{{"benchmark", "store_bench"},
                           {"index_publish", index_json},
                           {"tile_write_cpu_ms", tile_cost.write_ms},
+                          {"tile_write_gdal_cpu_ms", tile_cost.write_gdal_ms},
+                          {"byte_tile_write_gdal_cpu_ms", tile_cost8.write_gdal_ms},
                           {"tile_read_cpu_ms", tile_cost.read_ms},
                           {"tile_read_gdal_cpu_ms", tile_cost.read_gdal_ms},
                           {"byte_tile_write_cpu_ms", tile_cost8.write_ms},

@@ -8,7 +8,7 @@ packages=(
   build-essential cmake ninja-build pkg-config clang-format
   libgdal-dev gdal-bin python3-gdal libproj-dev proj-bin
   libgeographiclib-dev libopencv-dev libeigen3-dev libceres-dev
-  libgtest-dev libgmock-dev nlohmann-json3-dev libzstd-dev
+  libgtest-dev libgmock-dev nlohmann-json3-dev libzstd-dev libtiff-dev
   python3-numpy python3-matplotlib pybind11-dev python3-pytest
   clang libclang-rt-14-dev  # scripts/fuzz.sh: clang++ with libFuzzer and the sanitizers
 )

@@ -862,6 +862,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.refresh_slice_tiles = options_.refresh_slice_tiles;
     store_options.refresh_quiet_publishes = options_.refresh_quiet_publishes;
     store_options.writer_nice = options_.writer_nice;
+    store_options.on_publish = options_.on_publish;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);
     if (!planned_px_.empty()) opened->SetPlannedBoundsPx(planned_px_);

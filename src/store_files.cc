@@ -7,6 +7,7 @@
 #include <gdal_priv.h>
 #include <ogrsf_frmts.h>
 #include <sys/stat.h>
+#include <tiffio.h>
 #include <unistd.h>
 #include <zstd.h>
 
@@ -20,9 +21,13 @@
 #include <cstring>
 #include <ctime>
 #include <fstream>
+#include <map>
+#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
+#include <set>
 #include <sstream>
 
 #if defined(__SSE2__)
@@ -194,9 +199,23 @@ void WriteFileAtomic(const fs::path& path, const std::string& content, bool dura
   RenameOrThrow(temp, path, durable);
 }
 
-int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const double gt[6],
-                        const TileWriteSettings& settings) {
-  const fs::path temp = TemporaryPathFor(path);
+namespace {
+
+thread_local int64_t t_direct_tile_writes = 0;
+
+// GDAL's GTiff encoding of a tile, in memory; `data` is CPLFree'd with the holder.
+struct GdalEncoded {
+  GByte* data = nullptr;
+  vsi_l_offset length = 0;
+  std::string failure;
+  GdalEncoded() = default;
+  GdalEncoded(const GdalEncoded&) = delete;
+  GdalEncoded& operator=(const GdalEncoded&) = delete;
+  ~GdalEncoded() { CPLFree(data); }
+};
+
+void EncodeWithGdal(const TileImage& tile, const double gt[6], const TileWriteSettings& settings,
+                    GdalEncoded* out) {
   // GDAL encodes the file in memory (/vsimem), then it goes to disk in one write instead of
   // libtiff's many small writes and seeks: 3.7 -> 3.35 CPU ms per 512 x 512 UInt16 tile of a
   // flight, with the creation options no longer validated per tile (docs/benchmarks.md,
@@ -248,18 +267,349 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
     }
     GDALClose(dataset);
   }
-  vsi_l_offset length = 0;
-  GByte* encoded = VSIGetMemFileBuffer(memory_path.c_str(), &length, TRUE);  // Takes it over.
-  std::string failure;
-  if (dataset == nullptr || capture.failed() || encoded == nullptr) {
-    failure = capture.failed() ? capture.message() : std::string("GDAL failed");
-  } else {
-    std::ofstream out(temp, std::ios::binary | std::ios::trunc);
-    out.write(reinterpret_cast<const char*>(encoded), static_cast<std::streamsize>(length));
-    out.close();  // A file system may report a write error only here.
-    if (!out) failure = std::strerror(errno);
+  out->data = VSIGetMemFileBuffer(memory_path.c_str(), &out->length, TRUE);  // Takes it over.
+  if (dataset == nullptr || capture.failed() || out->data == nullptr) {
+    out->failure = capture.failed() ? capture.message() : std::string("GDAL failed");
   }
-  CPLFree(encoded);
+}
+
+// The georeferencing tags GDAL writes for a CRS (GeoTIFF's GeoKeyDirectory, GeoDoubleParams,
+// GeoAsciiParams): the same for every tile of a store; the direct encoder copies them.
+struct GeoTags {
+  std::vector<uint16_t> key_directory;
+  std::vector<double> double_params;
+  std::string ascii_params;
+};
+
+// TIFF tags of the direct layout (TIFF 6.0 and GeoTIFF 1.0 numbers).
+constexpr uint16_t kTagModelPixelScale = 33550, kTagModelTiepoint = 33922,
+                   kTagGeoKeyDirectory = 34735, kTagGeoDoubleParams = 34736,
+                   kTagGeoAsciiParams = 34737;
+
+// The GeoTIFF tags of `file`, a classic little-endian TIFF GDAL wrote for a tile of `settings`
+// with geotransform `gt`, when its first directory holds exactly the tags the direct encoder
+// writes, with the values it writes (so its files and GDAL's carry the same header); nullopt
+// otherwise (a CRS or GDAL version that writes more, e.g. metadata): that CRS goes through GDAL.
+std::optional<GeoTags> DirectGeoTagsOf(const GByte* file, size_t size, const double gt[6],
+                                       const TileWriteSettings& settings, int tile_size,
+                                       int block) {
+  const auto u16 = [&](size_t at) { return static_cast<uint16_t>(file[at] | (file[at + 1] << 8)); };
+  const auto u32 = [&](size_t at) {
+    return static_cast<uint32_t>(file[at]) | (static_cast<uint32_t>(file[at + 1]) << 8) |
+           (static_cast<uint32_t>(file[at + 2]) << 16) |
+           (static_cast<uint32_t>(file[at + 3]) << 24);
+  };
+  if (size < 8 || file[0] != 'I' || file[1] != 'I' || u16(2) != 42) return std::nullopt;
+  const size_t ifd = u32(4);
+  if (ifd + 2 > size) return std::nullopt;
+  const size_t entries = u16(ifd);
+  if (ifd + 2 + 12 * entries + 4 > size) return std::nullopt;
+  struct Entry {
+    uint16_t type = 0;
+    uint32_t count = 0;
+    size_t at = 0;  // Offset of the values in the file.
+  };
+  std::map<uint16_t, Entry> tags;
+  for (size_t k = 0; k < entries; ++k) {
+    const size_t e = ifd + 2 + 12 * k;
+    Entry entry{u16(e + 2), u32(e + 4), 0};
+    size_t unit = 0;
+    switch (entry.type) {
+      case 1:
+      case 2:
+        unit = 1;
+        break;  // BYTE, ASCII
+      case 3:
+        unit = 2;
+        break;  // SHORT
+      case 4:
+        unit = 4;
+        break;  // LONG
+      case 12:
+        unit = 8;
+        break;  // DOUBLE
+      default:
+        return std::nullopt;
+    }
+    const size_t bytes = unit * entry.count;
+    entry.at = bytes <= 4 ? e + 8 : u32(e + 8);
+    if (entry.at + bytes > size) return std::nullopt;
+    tags[u16(e)] = entry;
+  }
+  const auto shorts = [&](uint16_t tag) {
+    std::vector<uint32_t> values;
+    const auto it = tags.find(tag);
+    if (it == tags.end() || (it->second.type != 3 && it->second.type != 4)) return values;
+    for (uint32_t i = 0; i < it->second.count; ++i) {
+      values.push_back(it->second.type == 3 ? u16(it->second.at + 2 * i)
+                                            : u32(it->second.at + 4 * i));
+    }
+    return values;
+  };
+  const auto doubles = [&](uint16_t tag) {
+    std::vector<double> values;
+    const auto it = tags.find(tag);
+    if (it == tags.end() || it->second.type != 12) return values;
+    values.resize(it->second.count);
+    std::memcpy(values.data(), file + it->second.at, 8 * values.size());
+    return values;
+  };
+  const uint32_t bits = settings.type == PixelType::kUInt16 ? 16 : 8;
+  const uint32_t n = static_cast<uint32_t>(tile_size), b = static_cast<uint32_t>(block);
+  const uint32_t blocks = 2 * (n / b) * (n / b);
+  using V = std::vector<uint32_t>;
+  const bool layout =
+      shorts(256) == V{n} && shorts(257) == V{n} && shorts(258) == V{bits, bits} &&
+      shorts(259) == V{50000} && shorts(262) == V{1} && shorts(277) == V{2} &&
+      shorts(284) == V{2} && shorts(317) == V{2} && shorts(322) == V{b} && shorts(323) == V{b} &&
+      shorts(324).size() == blocks && shorts(325).size() == blocks && shorts(338) == V{2} &&
+      shorts(339) == V{1, 1} &&
+      doubles(kTagModelPixelScale) == std::vector<double>{gt[1], -gt[5], 0.0} &&
+      doubles(kTagModelTiepoint) == std::vector<double>{0.0, 0.0, 0.0, gt[0], gt[3], 0.0} &&
+      gt[2] == 0.0 && gt[4] == 0.0 && tags.count(kTagGeoKeyDirectory) &&
+      tags.at(kTagGeoKeyDirectory).type == 3;
+  const std::set<uint16_t> known = {256,
+                                    257,
+                                    258,
+                                    259,
+                                    262,
+                                    277,
+                                    284,
+                                    317,
+                                    322,
+                                    323,
+                                    324,
+                                    325,
+                                    338,
+                                    339,
+                                    kTagModelPixelScale,
+                                    kTagModelTiepoint,
+                                    kTagGeoKeyDirectory,
+                                    kTagGeoDoubleParams,
+                                    kTagGeoAsciiParams};
+  for (const auto& [tag, entry] : tags) {
+    if (!known.count(tag)) return std::nullopt;
+  }
+  if (!layout) return std::nullopt;
+  GeoTags geo;
+  for (const uint32_t v : shorts(kTagGeoKeyDirectory)) {
+    geo.key_directory.push_back(static_cast<uint16_t>(v));
+  }
+  geo.double_params = doubles(kTagGeoDoubleParams);
+  if (const auto it = tags.find(kTagGeoAsciiParams); it != tags.end()) {
+    if (it->second.type != 2 || it->second.count == 0) return std::nullopt;
+    // Stored with its terminating NUL, which libtiff adds back.
+    geo.ascii_params.assign(reinterpret_cast<const char*>(file + it->second.at),
+                            it->second.count - 1);
+    if (geo.ascii_params.find('\0') != std::string::npos) return std::nullopt;
+  }
+  if (tags.count(kTagGeoDoubleParams) && geo.double_params.empty()) return std::nullopt;
+  return geo;
+}
+
+// GeoTags by CRS, pixel type and tile size; nullopt: GDAL writes that kind of tile otherwise.
+std::mutex g_geo_tags_mutex;
+std::map<std::string, std::optional<GeoTags>> g_geo_tags;
+
+struct ZstdCompressContextDeleter {
+  void operator()(ZSTD_CCtx* context) const { ZSTD_freeCCtx(context); }
+};
+
+// One band of the tile (`plane`, CV_8U or CV_16U; an 8-bit alpha plane of a UInt16 tile is
+// scaled by 257 as GDAL's path does), block by block: rows differenced, compressed, handed to
+// libtiff as finished blocks. False with *failure on any error.
+template <typename T>
+bool WriteBandBlocks(TIFF* tif, const cv::Mat& plane, uint16_t sample, int block, int level,
+                     std::string* failure) {
+  thread_local std::unique_ptr<ZSTD_CCtx, ZstdCompressContextDeleter> context(ZSTD_createCCtx());
+  thread_local std::vector<uint8_t> raw, packed;
+  thread_local std::vector<uint16_t> widened;
+  if (!context) {
+    *failure = "libzstd could not make a compression context";
+    return false;
+  }
+  const size_t block_bytes = static_cast<size_t>(block) * block * sizeof(T);
+  raw.resize(block_bytes);
+  packed.resize(ZSTD_compressBound(block_bytes));
+  widened.resize(static_cast<size_t>(block));
+  const bool scale = sizeof(T) == 2 && plane.depth() == CV_8U;
+  for (int y0 = 0; y0 < plane.rows; y0 += block) {
+    for (int x0 = 0; x0 < plane.cols; x0 += block) {
+      for (int r = 0; r < block; ++r) {
+        T* out = reinterpret_cast<T*>(raw.data()) + static_cast<size_t>(r) * block;
+        if (scale) {
+          const uint8_t* in = plane.ptr<uint8_t>(y0 + r) + x0;
+          for (int c = 0; c < block; ++c) widened[c] = static_cast<uint16_t>(in[c] * 257);
+          HorizontalDifferencing(widened.data(), reinterpret_cast<uint16_t*>(out), block);
+        } else {
+          HorizontalDifferencing(plane.ptr<T>(y0 + r) + x0, out, block);
+        }
+      }
+      const size_t length = ZSTD_compressCCtx(context.get(), packed.data(), packed.size(),
+                                              raw.data(), block_bytes, level);
+      if (ZSTD_isError(length)) {
+        *failure = std::string("libzstd: ") + ZSTD_getErrorName(length);
+        return false;
+      }
+      const ttile_t index =
+          TIFFComputeTile(tif, static_cast<uint32_t>(x0), static_cast<uint32_t>(y0), 0, sample);
+      if (TIFFWriteRawTile(tif, index, packed.data(), static_cast<tmsize_t>(length)) < 0) {
+        *failure = std::strerror(errno);
+        return false;
+      }
+    }
+  }
+  return true;
+}
+
+// Writes `tile` to `temp` in the direct layout (TileEncoding::kDirect) with libtiff; its size in
+// *bytes. False with *failure on any error (the caller removes `temp`).
+bool WriteTileDirect(const fs::path& temp, const TileImage& tile, const double gt[6],
+                     const TileWriteSettings& settings, const GeoTags& geo, int64_t* bytes,
+                     std::string* failure) {
+  GdalErrorCapture capture;  // libtiff's messages go to GDAL's handler once GTiff has run.
+  TIFF* tif = TIFFOpen(temp.c_str(), "wl");
+  if (tif == nullptr) {
+    *failure = capture.failed() ? capture.message() : std::strerror(errno);
+    return false;
+  }
+  // As libgeotiff registers them (GeoTIFF 1.0): counted arrays, the ASCII one NUL-terminated.
+  static const TIFFFieldInfo kGeoFields[] = {
+      {kTagModelPixelScale, -1, -1, TIFF_DOUBLE, FIELD_CUSTOM, 1, 1,
+       const_cast<char*>("ModelPixelScale")},
+      {kTagModelTiepoint, -1, -1, TIFF_DOUBLE, FIELD_CUSTOM, 1, 1,
+       const_cast<char*>("ModelTiepoint")},
+      {kTagGeoKeyDirectory, -1, -1, TIFF_SHORT, FIELD_CUSTOM, 1, 1,
+       const_cast<char*>("GeoKeyDirectory")},
+      {kTagGeoDoubleParams, -1, -1, TIFF_DOUBLE, FIELD_CUSTOM, 1, 1,
+       const_cast<char*>("GeoDoubleParams")},
+      {kTagGeoAsciiParams, -1, -1, TIFF_ASCII, FIELD_CUSTOM, 1, 0,
+       const_cast<char*>("GeoAsciiParams")},
+  };
+  const int size = tile.data.cols, block = std::min(kBlockSize, size);
+  const bool wide = settings.type == PixelType::kUInt16;
+  const uint16_t extra[1] = {EXTRASAMPLE_UNASSALPHA};
+  double scale[3] = {gt[1], -gt[5], 0.0};
+  double tiepoint[6] = {0.0, 0.0, 0.0, gt[0], gt[3], 0.0};
+  bool ok = TIFFMergeFieldInfo(tif, kGeoFields, 5) == 0 &&
+            TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, static_cast<uint32_t>(size)) &&
+            TIFFSetField(tif, TIFFTAG_IMAGELENGTH, static_cast<uint32_t>(size)) &&
+            TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, wide ? 16 : 8) &&
+            TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, 2) &&
+            TIFFSetField(tif, TIFFTAG_COMPRESSION, COMPRESSION_ZSTD) &&
+            TIFFSetField(tif, TIFFTAG_PHOTOMETRIC, PHOTOMETRIC_MINISBLACK) &&
+            TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_SEPARATE) &&
+            TIFFSetField(tif, TIFFTAG_PREDICTOR, PREDICTOR_HORIZONTAL) &&
+            TIFFSetField(tif, TIFFTAG_TILEWIDTH, static_cast<uint32_t>(block)) &&
+            TIFFSetField(tif, TIFFTAG_TILELENGTH, static_cast<uint32_t>(block)) &&
+            TIFFSetField(tif, TIFFTAG_EXTRASAMPLES, 1, extra) &&
+            TIFFSetField(tif, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) &&
+            TIFFSetField(tif, kTagModelPixelScale, 3, scale) &&
+            TIFFSetField(tif, kTagModelTiepoint, 6, tiepoint) &&
+            TIFFSetField(tif, kTagGeoKeyDirectory, static_cast<int>(geo.key_directory.size()),
+                         geo.key_directory.data());
+  if (ok && !geo.double_params.empty()) {
+    ok = TIFFSetField(tif, kTagGeoDoubleParams, static_cast<int>(geo.double_params.size()),
+                      geo.double_params.data());
+  }
+  if (ok && !geo.ascii_params.empty()) {
+    ok = TIFFSetField(tif, kTagGeoAsciiParams, geo.ascii_params.c_str());
+  }
+  if (!ok) *failure = "libtiff refused a tag";
+  const int level = settings.compression_level;
+  if (ok) {
+    ok = wide ? WriteBandBlocks<uint16_t>(tif, tile.data, 0, block, level, failure) &&
+                    WriteBandBlocks<uint16_t>(tif, tile.alpha, 1, block, level, failure)
+              : WriteBandBlocks<uint8_t>(tif, tile.data, 0, block, level, failure) &&
+                    WriteBandBlocks<uint8_t>(tif, tile.alpha, 1, block, level, failure);
+  }
+  if (ok && TIFFFlush(tif) != 1) {
+    ok = false;
+    *failure = capture.failed() ? capture.message() : std::strerror(errno);
+  }
+  TIFFClose(tif);
+  if (!ok) return false;
+  std::error_code error;
+  *bytes = static_cast<int64_t>(fs::file_size(temp, error));
+  if (error) {
+    *failure = error.message();
+    return false;
+  }
+  return true;
+}
+
+template <typename T>
+void DifferenceRow(const T* in, T* out, int n) {
+  if (n <= 0) return;
+  out[0] = in[0];
+  int i = 1;
+#if defined(__SSE2__)
+  constexpr int kLanes = 16 / sizeof(T);
+  for (; i + kLanes <= n; i += kLanes) {
+    const __m128i a = _mm_loadu_si128(reinterpret_cast<const __m128i*>(in + i));
+    const __m128i b = _mm_loadu_si128(reinterpret_cast<const __m128i*>(in + i - 1));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + i),
+                     sizeof(T) == 1 ? _mm_sub_epi8(a, b) : _mm_sub_epi16(a, b));
+  }
+#endif
+  for (; i < n; ++i) out[i] = static_cast<T>(in[i] - in[i - 1]);
+}
+
+}  // namespace
+
+void HorizontalDifferencing(const uint8_t* in, uint8_t* out, int n) { DifferenceRow(in, out, n); }
+void HorizontalDifferencing(const uint16_t* in, uint16_t* out, int n) { DifferenceRow(in, out, n); }
+
+int64_t DirectTileWrites() { return t_direct_tile_writes; }
+
+int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const double gt[6],
+                        const TileWriteSettings& settings) {
+  const fs::path temp = TemporaryPathFor(path);
+  const int size = tile.data.cols;
+  const int block = std::min(kBlockSize, size);
+  const bool direct_layout =
+      settings.encoding == TileEncoding::kDirect && settings.compression == "ZSTD" &&
+      (settings.type == PixelType::kByte || settings.type == PixelType::kUInt16) &&
+      std::endian::native == std::endian::little && size % block == 0 &&
+      tile.data.depth() == CvDepthOf(settings.type) && tile.alpha.depth() == CV_8U;
+  const std::string key =
+      settings.crs_wkt + "|" + GdalTypeNameOf(settings.type) + "|" + std::to_string(size);
+  std::optional<GeoTags> geo;
+  bool known = false;
+  if (direct_layout) {
+    const std::lock_guard<std::mutex> lock(g_geo_tags_mutex);
+    const auto it = g_geo_tags.find(key);
+    if (it != g_geo_tags.end()) {
+      known = true;
+      geo = it->second;
+    }
+  }
+  std::string failure;
+  int64_t length = 0;
+  if (geo) {
+    if (WriteTileDirect(temp, tile, gt, settings, *geo, &length, &failure)) {
+      ++t_direct_tile_writes;
+    }
+  } else {
+    GdalEncoded encoded;
+    EncodeWithGdal(tile, gt, settings, &encoded);
+    failure = encoded.failure;
+    if (failure.empty()) {
+      if (direct_layout && !known) {
+        // The first tile of its kind: GDAL's header tells what the direct encoder copies.
+        std::optional<GeoTags> tags =
+            DirectGeoTagsOf(encoded.data, encoded.length, gt, settings, size, block);
+        const std::lock_guard<std::mutex> lock(g_geo_tags_mutex);
+        g_geo_tags.emplace(key, std::move(tags));
+      }
+      std::ofstream out(temp, std::ios::binary | std::ios::trunc);
+      out.write(reinterpret_cast<const char*>(encoded.data),
+                static_cast<std::streamsize>(encoded.length));
+      out.close();  // A file system may report a write error only here.
+      if (!out) failure = std::strerror(errno);
+      length = static_cast<int64_t>(encoded.length);
+    }
+  }
   if (!failure.empty()) {
     std::error_code ignored;
     fs::remove(temp, ignored);
@@ -268,7 +618,7 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
                       "store is unchanged");
   }
   RenameOrThrow(temp, path, settings.durable);
-  return static_cast<int64_t>(length);
+  return length;
 }
 
 namespace {

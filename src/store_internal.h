@@ -59,18 +59,36 @@ std::string TileRelativePath(int level, const TileIndex& tile);
 // GDAL geotransform of a tile of `level` (pixel size gsd * 2^level).
 void TileGeoTransform(double gsd_m, int tile_size, int level, const TileIndex& tile, double gt[6]);
 
+// How WriteTileAtomic encodes a tile. kDirect: for the store's own layout (ZSTD, Byte or UInt16,
+// little-endian, the tile a whole number of blocks) libtiff writes the file's structure while
+// the store applies the predictor (SSE2) and compresses each block with libzstd itself, handing
+// libtiff the finished blocks (TIFFWriteRawTile); the georeferencing tags are those GDAL wrote
+// for the first tile of the CRS (that tile goes through GDAL), with the tile's own geotransform.
+// Anything else goes through GDAL's GTiff driver, as with kGdal. Both give files GDAL reads as
+// the same samples, georeference and structure. Why: libtiff 4.5 applies the predictor one byte
+// at a time and GDAL copies each block on its way (docs/store.md, "Writing tiles").
+enum class TileEncoding { kDirect, kGdal };
+
 struct TileWriteSettings {
   PixelType type = PixelType::kUInt16;
   std::string compression = "ZSTD";
   int compression_level = 1;
   std::string crs_wkt;
   bool durable = false;
+  TileEncoding encoding = TileEncoding::kDirect;
 };
 
 // Writes a tile GeoTIFF to a temporary name beside `path` and renames it into place. Returns the
 // file's size. Throws OutputError naming the file on any failure (the old file stays).
 int64_t WriteTileAtomic(const std::filesystem::path& path, const TileImage& tile,
                         const double gt[6], const TileWriteSettings& settings);
+// Tiles this thread has written with the direct encoder (WriteTileAtomic's kDirect path), for
+// tests.
+int64_t DirectTileWrites();
+// TIFF's horizontal differencing (predictor 2) of one row of n samples: out[0] = in[0], then
+// each sample minus the one before it, wrapping.
+void HorizontalDifferencing(const uint8_t* in, uint8_t* out, int n);
+void HorizontalDifferencing(const uint16_t* in, uint16_t* out, int n);
 // How ReadTile decodes a tile's samples. kDirect: GDAL opens the file (its header, shape and
 // block table) and, when the blocks are the store's own layout (ZSTD with the horizontal
 // predictor, band-interleaved, Byte or UInt16, little-endian), ReadTile decompresses them with

@@ -15,6 +15,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstdio>
 #include <cstring>
 #include <ctime>
 #include <deque>
@@ -28,6 +29,7 @@
 #include <thread>
 #include <type_traits>
 #include <unordered_map>
+#include <utility>
 
 #include "irmosaic/error.h"
 #include "nlohmann/json.hpp"
@@ -115,6 +117,17 @@ double ThreadCpuMs() {
   timespec ts{};
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
   return 1e3 * static_cast<double>(ts.tv_sec) + 1e-6 * static_cast<double>(ts.tv_nsec);
+}
+
+// Time the calling thread has waited for a CPU while runnable, ms (Linux: the second field of
+// /proc/thread-self/schedstat); 0 where the kernel does not report it. For PublishReport.
+double ThreadRunQueueMs() {
+  std::FILE* file = std::fopen("/proc/thread-self/schedstat", "r");
+  if (!file) return 0.0;
+  unsigned long long on_cpu_ns = 0, waiting_ns = 0;
+  const int fields = std::fscanf(file, "%llu %llu", &on_cpu_ns, &waiting_ns);
+  std::fclose(file);
+  return fields == 2 ? 1e-6 * static_cast<double>(waiting_ns) : 0.0;
 }
 
 double MsSince(Clock::time_point start) {
@@ -417,8 +430,11 @@ struct TileStore::Impl {
   }
   std::vector<bool> build_whole;
   bool cycle_paused = false;
-  bool slice_turn = false;      // The writer published last: a slice goes before the next publish.
-  bool refresh_turn = false;    // ... and a refresh slice.
+  bool slice_turn = false;    // The writer published last: a slice goes before the next publish.
+  bool refresh_turn = false;  // ... and a refresh slice.
+  // Slices run since the last publish, for its PublishReport (on_publish).
+  int slices_refresh = 0, slices_overview = 0;
+  double slices_ms = 0.0;
   bool refresh_paused = false;  // A refresh slice failed: none until the next publish.
   // A refreshed tile is written by a slice once refresh_quiet_publishes publishes passed since
   // it was last painted, so that a tile the re-renders keep painting is written no more often
@@ -847,6 +863,8 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   // reports the condition if it persists, instead of retrying in a loop.
   if (!work.error.empty()) cycle_paused = true;
   ++stats.overview_slices;
+  ++slices_overview;
+  slices_ms += work.busy_ms;
   stats.writer_busy_ms += work.busy_ms;
   stats.writer_cpu_ms += work.cpu_ms;
   stats.tiles_written += tiles;
@@ -917,6 +935,8 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
     }
   }
   ++stats.refresh_slices;
+  ++slices_refresh;
+  slices_ms += work.busy_ms;
   stats.refresh_tiles_written += tiles;
   replaced_since_publish = replaced_since_publish || tiles > 0;
   stats.writer_busy_ms += work.busy_ms;
@@ -931,6 +951,19 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
 
 void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mutex>& lock) {
   cycle_paused = false;  // A slice that failed tries again after this publish.
+  PublishReport report;
+  report.generation = generation;
+  report.started = Clock::now();
+  const double run_queue_start_ms = options.on_publish ? ThreadRunQueueMs() : 0.0;
+  report.first_request = report.last_request = report.started;
+  if (!request_time_of.empty()) {
+    report.first_request = request_time_of.begin()->second;
+    const auto last = request_time_of.upper_bound(generation);
+    if (last != request_time_of.begin()) report.last_request = std::prev(last)->second;
+  }
+  report.refresh_slices = std::exchange(slices_refresh, 0);
+  report.overview_slices = std::exchange(slices_overview, 0);
+  report.slices_ms = std::exchange(slices_ms, 0.0);
   // 1. Snapshot what changed, under the lock (memory copies only).
   std::map<TileIndex, TileImage> level0;
   // Refreshed tiles wait for slices (they stay cached), unless closing, or more than
@@ -995,6 +1028,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.overview_updates += secondary ? 1 : 0;
   stats.overview_updates_early += early ? 1 : 0;
   stats.overview_updates_in_publish += in_publish ? 1 : 0;
+  report.refreshed_tiles = static_cast<int>(refreshed_taken.size());
+  report.overview_update = secondary;
+  report.overview_update_early = early;
+  report.overview_update_in_publish = synchronous;
   std::vector<FrameRecord> frames_to_write;
   if (secondary) frames_to_write.swap(frames_changed);
   // The records frames.gpkg does not hold yet go in the manifest (frames.pending), so that the
@@ -1094,6 +1131,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     if (secondary && (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg"))) {
       store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
                              options.durable);
+      report.frames_gpkg = true;
     }
     next.frame_count = frame_count;
     next.time_min_s = time_min;
@@ -1101,7 +1139,9 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     next.application_json = application;
     next.planned_bounds_px = planned;
     next.frames_pending = std::move(frames_pending);
+    const double index_ms_before = index_ms;
     WriteIndex(&next, generation);
+    report.index_ms = index_ms - index_ms_before;
     index_owed = false;
     if (range_changed) WriteQlr(next);
     qlr_owed = false;
@@ -1124,6 +1164,22 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   }
   const double busy_ms = MsSince(start);
   const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  // The report goes out before the generation counts as published, so that a caller woken by
+  // WaitPublished has its report; the files are on disk already. `finished` is the time
+  // PublishedAt gives (latencies are counted to it, not to the end of the callback).
+  report.finished = Clock::now();
+  report.cpu_ms = cpu_ms;
+  report.run_queue_ms = options.on_publish ? ThreadRunQueueMs() - run_queue_start_ms : 0.0;
+  report.level0_tiles = static_cast<int>(tiles_written);
+  report.overview_tiles = static_cast<int>(overview_written);
+  report.failed = !error.empty();
+  if (options.on_publish) {
+    try {
+      options.on_publish(report);
+    } catch (...) {
+      // Diagnostics only: a throwing callback must not stop the writer (the publish is done).
+    }
+  }
 
   lock.lock();
   stats.writer_busy_ms += busy_ms;
@@ -1138,7 +1194,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.bytes_written += bytes;
   if (error.empty()) {
     published_generation = generation;
-    published_at.emplace_back(generation, Clock::now());
+    published_at.emplace_back(generation, report.finished);
     if (published_at.size() > 4096) {
       published_at_dropped_through = published_at.front().first;
       published_at.pop_front();
@@ -1495,10 +1551,13 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
       s.request_time_of[++s.requested_generation] = Clock::now();
       s.changed.notify_all();
     }
+    const Clock::time_point wait_start = Clock::now();
     s.changed.wait(lock, [&] {
       return s.cache.size() <= 2 * s.options.max_cached_tiles ||
              s.failed_generation >= s.requested_generation || s.stop;
     });
+    ++s.stats.paint_waits;
+    s.stats.paint_wait_ms_total += MsSince(wait_start);
   }
   s.stats.paint_ms_total += MsSince(start);
 }

@@ -14,6 +14,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <thread>
@@ -471,6 +472,12 @@ TEST(MosaickerApiTest, FinishPublishesTheLastFramesBeforeTheFinalSolve) {
   options.on_frame_published = [&](int64_t index, double latency_s) {
     published.push_back({index, latency_s});
   };
+  std::mutex reports_mu;  // The store's reports come on its writer thread.
+  std::vector<PublishReport> reports;
+  options.on_publish = [&](const PublishReport& r) {
+    std::lock_guard<std::mutex> lock(reports_mu);
+    reports.push_back(r);
+  };
   const auto start = std::chrono::steady_clock::now();
   Mosaicker m(options, sim.camera(), sim.MeasuredPos());
   struct Seen {
@@ -527,6 +534,22 @@ TEST(MosaickerApiTest, FinishPublishesTheLastFramesBeforeTheFinalSolve) {
     max_latency_s = std::max(max_latency_s, published[static_cast<size_t>(i)].second);
   }
   EXPECT_EQ(max_latency_s, m.summary().publish_latency_max_s);
+  // The store's reports (passed through to it): one per publish, generations rising, the first
+  // one (Finish's, before the final solve) writing the frames' tiles; every frame's latency ends
+  // at its publish's finish, no later than the first report's.
+  {
+    std::lock_guard<std::mutex> lock(reports_mu);
+    ASSERT_GE(reports.size(), 2u);
+    EXPECT_EQ(reports.front().generation, seen.front().generation);
+    EXPECT_GT(reports.front().level0_tiles, 0);
+    for (size_t k = 1; k < reports.size(); ++k) {
+      EXPECT_GT(reports[k].generation, reports[k - 1].generation);
+    }
+    EXPECT_EQ(reports.back().generation, seen.back().generation);
+    const double first_finished_s =
+        std::chrono::duration<double>(reports.front().finished - start).count();
+    EXPECT_LE(max_latency_s, first_finished_s);
+  }
   fs::remove_all(options.store_path);
 }
 

@@ -20,10 +20,12 @@
 #include <fstream>
 #include <functional>
 #include <iterator>
+#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <random>
 #include <set>
+#include <stdexcept>
 #include <thread>
 #include <tuple>
 
@@ -1066,6 +1068,37 @@ TEST(TileStoreTest, PredictorUndoneAsARunningSum) {
   }
 }
 
+// A tile layout of the direct encoder and decoder tests, and whether it takes the direct path.
+struct LayoutCase {
+  PixelType type;
+  int size;
+  std::string compression;
+  bool direct;
+};
+
+// A tile as a mosaic holds: smooth ground with noise (the predictor leaves small differences)
+// and a covered disc with a ragged edge, zero outside it.
+store::TileImage SyntheticTile(int size, PixelType type, std::mt19937* random) {
+  store::TileImage tile = store::EmptyTile(size, type);
+  cv::Mat ground(size, size, CV_32F);
+  cv::randn(ground, 0, 1);
+  cv::GaussianBlur(ground, ground, cv::Size(0, 0), 6);
+  cv::normalize(ground, ground, 0, type == PixelType::kByte ? 255 : 60000, cv::NORM_MINMAX);
+  cv::Mat noise(size, size, CV_32F);
+  cv::randn(noise, 0, type == PixelType::kByte ? 3 : 300);
+  ground += noise;
+  ground.convertTo(tile.data, tile.data.type());
+  std::bernoulli_distribution ragged(0.3);
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      const double r = std::hypot(x - size * 0.4, y - size * 0.6);
+      tile.alpha.at<uchar>(y, x) = r < size * 0.45 || (r < size * 0.5 && ragged(*random)) ? 255 : 0;
+    }
+  }
+  tile.data.setTo(0, tile.alpha == 0);
+  return tile;
+}
+
 // Tiles read back by ReadTile's own decoder (ZSTD blocks, the predictor undone in SSE2) hold the
 // same samples and coverage as GDAL's decoding of the same file, for both integer types and tile
 // sizes of whole and partial 256-pixel blocks; other layouts (DEFLATE, Float32) go through GDAL.
@@ -1075,41 +1108,16 @@ TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
   const fs::path dir = FreshDir("direct_read");
   const LocalFrame frame(kLat0, kLon0);
   std::mt19937 random(3);
-  struct Case {
-    PixelType type;
-    int size;
-    std::string compression;
-    bool direct;
-  };
-  const std::vector<Case> cases = {
+  const std::vector<LayoutCase> cases = {
       {PixelType::kByte, 512, "ZSTD", true},     {PixelType::kUInt16, 512, "ZSTD", true},
       {PixelType::kByte, 300, "ZSTD", true},     {PixelType::kUInt16, 300, "ZSTD", true},
       {PixelType::kUInt16, 64, "ZSTD", true},    {PixelType::kUInt16, 512, "DEFLATE", false},
       {PixelType::kFloat32, 256, "ZSTD", false},
   };
-  for (const Case& c : cases) {
+  for (const LayoutCase& c : cases) {
     SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
                  std::to_string(static_cast<int>(c.type)));
-    store::TileImage tile = store::EmptyTile(c.size, c.type);
-    // Smooth ground with noise (as a mosaic: the predictor leaves small differences) and a
-    // covered disc with a ragged edge.
-    cv::Mat ground(c.size, c.size, CV_32F);
-    cv::randn(ground, 0, 1);
-    cv::GaussianBlur(ground, ground, cv::Size(0, 0), 6);
-    cv::normalize(ground, ground, 0, c.type == PixelType::kByte ? 255 : 60000, cv::NORM_MINMAX);
-    cv::Mat noise(c.size, c.size, CV_32F);
-    cv::randn(noise, 0, c.type == PixelType::kByte ? 3 : 300);
-    ground += noise;
-    ground.convertTo(tile.data, tile.data.type());
-    std::bernoulli_distribution ragged(0.3);
-    for (int y = 0; y < c.size; ++y) {
-      for (int x = 0; x < c.size; ++x) {
-        const double r = std::hypot(x - c.size * 0.4, y - c.size * 0.6);
-        tile.alpha.at<uchar>(y, x) =
-            r < c.size * 0.45 || (r < c.size * 0.5 && ragged(random)) ? 255 : 0;
-      }
-    }
-    tile.data.setTo(0, tile.alpha == 0);
+    const store::TileImage tile = SyntheticTile(c.size, c.type, &random);
     store::TileWriteSettings settings;
     settings.type = c.type;
     settings.compression = c.compression;
@@ -1152,6 +1160,116 @@ TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
         EXPECT_NE(std::string(e.what()).find("more than a tile"), std::string::npos) << e.what();
       }
     }
+  }
+  fs::remove_all(dir);
+}
+
+// Tiles written by WriteTileAtomic's own encoder (the predictor in SSE2, blocks compressed with
+// libzstd, libtiff writing the file around them) are the files GDAL writes for the same tile as
+// far as any reader sees: the same shape, type, block size, compression, predictor, alpha band,
+// geotransform, CRS and samples, read back exactly by GDAL and by ReadTile's own decoder. The
+// first tile of a CRS goes through GDAL (its georeferencing tags are copied from it); layouts
+// the encoder does not make (DEFLATE, Float32, partial blocks) always do.
+TEST(TileStoreTest, TilesWrittenDirectlyEqualGdalsWriting) {
+  GDALAllRegister();
+  const fs::path dir = FreshDir("direct_write");
+  const LocalFrame frame(kLat0, kLon0);
+  std::mt19937 random(5);
+  const std::vector<LayoutCase> cases = {
+      {PixelType::kByte, 512, "ZSTD", true},     {PixelType::kUInt16, 512, "ZSTD", true},
+      {PixelType::kByte, 64, "ZSTD", true},      {PixelType::kUInt16, 256, "ZSTD", true},
+      {PixelType::kUInt16, 300, "ZSTD", false},  {PixelType::kByte, 512, "DEFLATE", false},
+      {PixelType::kFloat32, 256, "ZSTD", false},
+  };
+  const auto item = [](GDALDatasetH ds, const char* key) {
+    const char* value = GDALGetMetadataItem(ds, key, "IMAGE_STRUCTURE");
+    return std::string(value ? value : "");
+  };
+  for (const LayoutCase& c : cases) {
+    SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
+                 std::to_string(static_cast<int>(c.type)));
+    store::TileImage tile = SyntheticTile(c.size, c.type, &random);
+    store::TileWriteSettings settings;
+    settings.type = c.type;
+    settings.compression = c.compression;
+    settings.crs_wkt = frame.CrsWkt();
+    double gt[6];
+    store::TileGeoTransform(kGsd, c.size, 1, {-3, 2}, gt);
+    const fs::path direct_path = dir / "direct.tif", gdal_path = dir / "gdal.tif";
+    store::WriteTileAtomic(direct_path, tile, gt, settings);  // The first of its kind, maybe.
+    const int64_t before = store::DirectTileWrites();
+    store::WriteTileAtomic(direct_path, tile, gt, settings);
+    EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
+    settings.encoding = store::TileEncoding::kGdal;
+    store::WriteTileAtomic(gdal_path, tile, gt, settings);
+    EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
+
+    GDALDatasetH a = GDALOpen(direct_path.c_str(), GA_ReadOnly);
+    GDALDatasetH b = GDALOpen(gdal_path.c_str(), GA_ReadOnly);
+    ASSERT_NE(a, nullptr);
+    ASSERT_NE(b, nullptr);
+    EXPECT_EQ(GDALGetRasterXSize(a), c.size);
+    EXPECT_EQ(GDALGetRasterYSize(a), c.size);
+    ASSERT_EQ(GDALGetRasterCount(a), 2);
+    double gta[6], gtb[6];
+    ASSERT_EQ(GDALGetGeoTransform(a, gta), CE_None);
+    ASSERT_EQ(GDALGetGeoTransform(b, gtb), CE_None);
+    for (int k = 0; k < 6; ++k) {
+      EXPECT_EQ(gta[k], gt[k]) << k;
+      EXPECT_EQ(gtb[k], gt[k]) << k;
+    }
+    EXPECT_STREQ(GDALGetProjectionRef(a), GDALGetProjectionRef(b));
+    OGRSpatialReference expected(frame.CrsWkt().c_str()), got(GDALGetProjectionRef(a));
+    EXPECT_TRUE(got.IsSame(&expected));
+    for (const char* key : {"COMPRESSION", "PREDICTOR", "INTERLEAVE"}) {
+      EXPECT_EQ(item(a, key), item(b, key)) << key;
+    }
+    for (int band = 1; band <= 2; ++band) {
+      GDALRasterBandH ba = GDALGetRasterBand(a, band), bb = GDALGetRasterBand(b, band);
+      EXPECT_EQ(GDALGetRasterDataType(ba), GDALGetRasterDataType(bb));
+      EXPECT_EQ(GDALGetRasterColorInterpretation(ba), GDALGetRasterColorInterpretation(bb));
+      int wa = 0, ha = 0, wb = 0, hb = 0;
+      GDALGetBlockSize(ba, &wa, &ha);
+      GDALGetBlockSize(bb, &wb, &hb);
+      EXPECT_EQ(wa, wb);
+      EXPECT_EQ(ha, hb);
+      cv::Mat sa(c.size, c.size, CV_64F), sb(c.size, c.size, CV_64F);
+      ASSERT_EQ(GDALRasterIO(ba, GF_Read, 0, 0, c.size, c.size, sa.ptr(), c.size, c.size,
+                             GDT_Float64, 0, 0),
+                CE_None);
+      ASSERT_EQ(GDALRasterIO(bb, GF_Read, 0, 0, c.size, c.size, sb.ptr(), c.size, c.size,
+                             GDT_Float64, 0, 0),
+                CE_None);
+      EXPECT_EQ(cv::norm(sa, sb, cv::NORM_INF), 0.0) << "band " << band;
+    }
+    EXPECT_EQ(GDALGetRasterColorInterpretation(GDALGetRasterBand(a, 2)), GCI_AlphaBand);
+    GDALClose(a);
+    GDALClose(b);
+    const int64_t reads = store::DirectTileReads();
+    const store::TileImage back = store::ReadTile(direct_path, c.size, c.type);
+    const bool readable_directly = c.compression == "ZSTD" && c.type != PixelType::kFloat32;
+    EXPECT_EQ(store::DirectTileReads() - reads, readable_directly ? 1 : 0);
+    EXPECT_EQ(cv::norm(back.data, tile.data, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(back.alpha, tile.alpha, cv::NORM_INF), 0.0);
+  }
+  // The predictor both ways, at every row length around the vector width.
+  for (int n = 1; n <= 40; ++n) {
+    std::vector<uint8_t> bytes(static_cast<size_t>(n)), diff8(bytes.size());
+    std::vector<uint16_t> words(static_cast<size_t>(n)), diff16(words.size());
+    for (int i = 0; i < n; ++i) {
+      bytes[static_cast<size_t>(i)] = static_cast<uint8_t>(random());
+      words[static_cast<size_t>(i)] = static_cast<uint16_t>(random());
+    }
+    store::HorizontalDifferencing(bytes.data(), diff8.data(), n);
+    store::HorizontalDifferencing(words.data(), diff16.data(), n);
+    EXPECT_EQ(diff8[0], bytes[0]);
+    if (n > 1) {
+      EXPECT_EQ(diff16[1], static_cast<uint16_t>(words[1] - words[0]));
+    }
+    store::UndoHorizontalDifferencing(diff8.data(), n);
+    store::UndoHorizontalDifferencing(diff16.data(), n);
+    EXPECT_EQ(diff8, bytes) << n;
+    EXPECT_EQ(diff16, words) << n;
   }
   fs::remove_all(dir);
 }
@@ -1311,10 +1429,13 @@ TEST(TileStoreTest, TilesOwedToDeferredOverviewsStayBoundedAndUpdateInSlices) {
   EXPECT_EQ(stats.overview_updates_in_publish, 0);
   EXPECT_GT(stats.overview_slices, 0);
   EXPECT_TRUE(fs::exists(dir / "tiles/1"));  // Before Close.
-  // A burst of 80 tiles at once (Paint's back-pressure publishes them 2 x max_cached_tiles at a
-  // time, faster than one slice per publish works them off) passes twice the bound: a publish
-  // then brings the overviews up to date itself.
-  for (int i = 0; i < 80; ++i) PaintSquare(store.get(), {i * 64, 64}, 64, 7);
+  // A burst of 80 tiles at once (one Paint spanning them, as a final solve's re-renders or a
+  // long footprint can) passes twice the bound in one publish (Paint's back-pressure asks for it
+  // and it takes all 80): that publish brings the overviews up to date itself. (Until session 36
+  // the burst was 80 one-tile paints, whose back-pressure publishes of 16 tiles outran the slices
+  // only while tile writes were slow: with the store's own encoder the slices kept up under ASan.)
+  store->Paint(cv::Mat(64, 80 * 64, CV_8U, cv::Scalar(7)),
+               cv::Mat(64, 80 * 64, CV_32F, cv::Scalar(1.0f)), {0, 64});
   store->WaitPublished(store->RequestPublish());
   stats = store->stats();
   EXPECT_GE(stats.overview_updates_in_publish, 1);
@@ -1505,6 +1626,104 @@ TEST(TileStoreTest, ARefreshedTileWaitsForItsQuietPublishesAndIsWrittenOnce) {
             before.tiles_written - before.overview_tiles_written + 1);
   ExpectTileHolds(ReadThroughGdal(dir / "mosaic.vrt"), kTile, 0, 0, 13);
   store->Close();
+}
+
+// What each publish did and when (TileStoreOptions::on_publish), the figures bench/flight_bench
+// traces a frame's latency with: its tiles, the overview update inside it, the slices before it,
+// and a finish that is the time PublishedAt gives; delivered before WaitPublished returns.
+TEST(TileStoreTest, PublishReportsSayWhatEachPublishDidAndWhen) {
+  constexpr int kTile = 64;
+  const fs::path dir = FreshDir("reports") / "s.irmosaic";
+  TileStoreOptions options = Options(dir, kTile);
+  options.pixel_type = PixelType::kByte;
+  options.refresh_slice_tiles = 1;
+  std::mutex mu;
+  std::vector<PublishReport> reports;
+  options.on_publish = [&](const PublishReport& report) {
+    std::lock_guard<std::mutex> lock(mu);
+    reports.push_back(report);
+  };
+  auto store = TileStore::Open(options, Georef());
+  const auto last_report = [&] {
+    std::lock_guard<std::mutex> lock(mu);
+    return reports.empty() ? PublishReport{} : reports.back();
+  };
+  // 3 x 3 tiles; overview_interval_s 0: the overviews (and frames.gpkg) inside each publish.
+  PaintSquare(store.get(), {0, 0}, 3 * kTile, 1);
+  FrameRecord record;
+  record.index = 7;
+  record.footprint_m = {Eigen::Vector2d(0, 0), {10, 0}, {10, -10}, {0, -10}};
+  store->PutFrameRecord(record);
+  const auto asked = std::chrono::steady_clock::now();
+  const int64_t first = store->RequestPublish();
+  store->WaitPublished(first);
+  PublishReport r = last_report();
+  EXPECT_EQ(r.generation, first);
+  EXPECT_FALSE(r.failed);
+  EXPECT_EQ(r.level0_tiles, 9);
+  EXPECT_EQ(r.refreshed_tiles, 0);
+  EXPECT_TRUE(r.overview_update);
+  EXPECT_TRUE(r.overview_update_in_publish);
+  EXPECT_FALSE(r.overview_update_early);
+  EXPECT_GT(r.overview_tiles, 0);
+  EXPECT_EQ(r.overview_tiles, store->stats().overview_tiles_written);
+  EXPECT_TRUE(r.frames_gpkg);  // It had a record to write.
+  EXPECT_GE(r.first_request, asked);
+  EXPECT_LE(r.first_request, r.last_request);
+  EXPECT_LE(r.last_request, r.started);
+  EXPECT_LE(r.started, r.finished);
+  ASSERT_TRUE(store->PublishedAt(first).has_value());
+  EXPECT_EQ(*store->PublishedAt(first), r.finished);
+  const double wall_ms = std::chrono::duration<double, std::milli>(r.finished - r.started).count();
+  EXPECT_GT(r.cpu_ms, 0.0);
+  EXPECT_LE(r.cpu_ms, wall_ms + 1.0);
+  EXPECT_GE(r.run_queue_ms, 0.0);
+  EXPECT_LE(r.run_queue_ms, wall_ms + 1.0);
+  EXPECT_GT(r.index_ms, 0.0);
+  EXPECT_LE(r.index_ms, wall_ms);
+  EXPECT_EQ(r.refresh_slices + r.overview_slices, 0);
+
+  // One tile painted anew and one refreshed: the publish writes the new one; the refreshed one
+  // goes in a slice after it, which the next publish's report counts.
+  PaintSquare(store.get(), {0, 0}, kTile, 2);
+  PaintSquare(store.get(), {kTile, 0}, kTile, 3, 1.0f, PaintKind::kRefresh);
+  const TileStore::Stats before = store->stats();
+  const int64_t second = store->RequestPublish();
+  store->WaitPublished(second);
+  r = last_report();
+  EXPECT_EQ(r.generation, second);
+  EXPECT_EQ(r.level0_tiles, 1);
+  EXPECT_FALSE(r.frames_gpkg);  // No record since.
+  WaitForRefreshWrites(store.get(), before, 1);
+  PaintSquare(store.get(), {0, kTile}, kTile, 4);
+  const int64_t third = store->RequestPublish();
+  store->WaitPublished(third);
+  r = last_report();
+  EXPECT_EQ(r.generation, third);
+  EXPECT_EQ(r.level0_tiles, 1);
+  EXPECT_EQ(r.refresh_slices, 1);
+  EXPECT_EQ(r.overview_slices, 0);
+  EXPECT_GT(r.slices_ms, 0.0);
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    EXPECT_EQ(reports.size(), 3u) << "one report per publish";
+  }
+  store->Close();
+
+  // A callback that throws does not stop the writer: the publishes go on.
+  const fs::path other = FreshDir("reports_throw") / "s.irmosaic";
+  TileStoreOptions throwing = Options(other, kTile);
+  throwing.pixel_type = PixelType::kByte;
+  throwing.on_publish = [](const PublishReport&) { throw std::runtime_error("diagnostics"); };
+  auto second_store = TileStore::Open(throwing, Georef());
+  for (int k = 0; k < 2; ++k) {
+    PaintSquare(second_store.get(), {k * kTile, 0}, kTile, 5 + k);
+    const int64_t generation = second_store->RequestPublish();
+    second_store->WaitPublished(generation);
+    EXPECT_EQ(second_store->published_generation(), generation);
+  }
+  second_store->Close();
+  ExpectTileHolds(ReadThroughGdal(other / "mosaic.vrt"), kTile, 0, 1, 6);
 }
 
 // More refreshed tiles waiting than max_cached_tiles (they stay in memory until written): the

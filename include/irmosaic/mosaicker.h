@@ -133,6 +133,10 @@ struct MosaickerOptions {
   // caller's thread at the end of Push, RequestPublish or Finish. For latency over time in a
   // long run (bench/flight_bench's checkpoints). Empty: not called.
   std::function<void(int64_t index, double latency_s)> on_frame_published;
+  // Diagnostics: the store's report of each publish (TileStoreOptions::on_publish), on the
+  // store's writer thread. With on_frame_published it traces a frame's latency to its parts.
+  // Empty: not called.
+  std::function<void(const PublishReport&)> on_publish;
 
   // False with a message naming the option when one is out of range.
   bool IsValid(std::string* error) const;

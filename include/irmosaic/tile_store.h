@@ -4,6 +4,7 @@
 #include <array>
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <opencv2/core.hpp>
 #include <optional>
@@ -32,6 +33,36 @@ struct StoreGeoreference {
 // What a Paint brings: new content (a frame placed for the first time), or a refresh of content
 // already there (a frame re-rendered at a refined placement), which may reach the disk later.
 enum class PaintKind { kNew, kRefresh };
+
+// Diagnostics of one publish of a TileStore (TileStoreOptions::on_publish): when it was asked
+// for and ran, and what it did. For tracing a publish latency to its parts (bench/flight_bench
+// prints the slowest frames' figures); nothing in the store depends on it.
+struct PublishReport {
+  int64_t generation = 0;  // The generation published (or not, if `failed`).
+  // The oldest and newest RequestPublish() this publish answers (the writer folds requests
+  // that waited together into one publish), when it started and when it finished (the time
+  // TileStore::PublishedAt gives its generations).
+  std::chrono::steady_clock::time_point first_request, last_request, started, finished;
+  // Slices the writer ran since the previous publish (refreshed tiles, overview updates), and
+  // their wall time: work a request may have waited behind.
+  int refresh_slices = 0, overview_slices = 0;
+  double slices_ms = 0.0;
+  int level0_tiles = 0;     // Level-0 tiles this publish wrote,
+  int refreshed_tiles = 0;  // of them refreshed ones it took (more waited than the bound).
+  // The overviews and frames.gpkg: whether this publish started an update (by the clock, or
+  // early: the memory bound), and whether it did the update whole inside itself (delaying its
+  // frames: past twice the bound, with overview_interval_s 0, and at Close()), with the
+  // overview tiles it wrote then.
+  bool overview_update = false, overview_update_early = false, overview_update_in_publish = false;
+  int overview_tiles = 0;
+  bool frames_gpkg = false;  // frames.gpkg written by this publish.
+  double index_ms = 0.0;     // Wall time in the index (VRTs, manifest.json).
+  double cpu_ms = 0.0;       // The writer's CPU time in this publish,
+  // and the time it waited for a CPU while runnable (Linux's /proc/thread-self/schedstat; 0
+  // where not reported). The rest of the wall time it was blocked: on the disk, or on a lock.
+  double run_queue_ms = 0.0;
+  bool failed = false;  // Not published (e.g. a full disk); retried with the next one.
+};
 
 // Configuration of a TileStore.
 struct TileStoreOptions {
@@ -83,6 +114,11 @@ struct TileStoreOptions {
   bool durable = false;  // fsync each file before its rename (power-loss safety).
   int writer_nice = 5;   // Writer thread's nice increment (0: same priority as the caller).
   std::string layer_name = "irmosaic";  // Name of the layers in the .qlr file.
+  // Diagnostics: called after each publish, on the writer thread, with what it did
+  // (PublishReport): after its files are written, before WaitPublished returns for its
+  // generation. Keep it short: the writer waits for it; an exception it throws is ignored.
+  // Empty: not called.
+  std::function<void(const PublishReport&)> on_publish;
 
   // True if usable; otherwise *error says which option is wrong and why.
   bool IsValid(std::string* error) const;
@@ -210,7 +246,11 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t tile_reloads = 0;    // Tiles read back from disk after leaving memory.
     int64_t overview_reads = 0;  // Overview tiles read from disk to update them.
     int64_t tile_copies = 0;  // Tiles Paint copied first, the writer still holding their buffers.
-    double paint_ms_total = 0.0;    // Time spent in Paint() by callers.
+    double paint_ms_total = 0.0;  // Time spent in Paint() by callers,
+    // of it waiting for the writer (back-pressure: more than 2 x max_cached_tiles tiles in
+    // memory), and the Paint calls that waited.
+    double paint_wait_ms_total = 0.0;
+    int64_t paint_waits = 0;
     double writer_busy_ms = 0.0;    // Time the writer thread spent working.
     double writer_cpu_ms = 0.0;     // CPU time of that work (the load does not inflate it).
     double index_ms_total = 0.0;    // Of the writer's time: writing the index (VRTs, manifest).
