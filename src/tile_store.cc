@@ -411,9 +411,11 @@ struct TileStore::Impl {
   TileSet propagate_pending;  // Level-0 tiles written by a failed publish: overviews owe them.
   // Level-0 tiles written while overviews were deferred (their latest images, halved: what
   // level 1 takes of them, a quarter of the memory), and when the overviews and frames.gpkg
-  // were last brought up to date.
+  // were last brought up to date (none yet: the first publish brings them; a default time point
+  // is the clock's epoch, the machine's boot, so a store opened within overview_interval_s of
+  // boot skipped its first update).
   std::map<TileIndex, TileImage> overview_owed;
-  Clock::time_point last_secondary{};
+  std::optional<Clock::time_point> last_secondary;
   // The overview update under way (cycle_levels >= 0): cycle_owed[L] holds the changed tiles of
   // level L - 1, halved, that level L still has to take (an empty image: read from disk when its
   // turn comes); build_whole[L]: level L is new, built from every tile of level L - 1 once the
@@ -1019,8 +1021,9 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   const size_t bound = kOwedPerCachedTile * options.max_cached_tiles;
   const bool idle = cycle_levels < 0;
   const bool by_clock =
-      idle && std::chrono::duration<double>(Clock::now() - last_secondary).count() >=
-                  options.overview_interval_s;
+      idle &&
+      (!last_secondary || std::chrono::duration<double>(Clock::now() - *last_secondary).count() >=
+                              options.overview_interval_s);
   const bool in_publish = live && owed + CycleOwedCount() > 2 * bound;
   const bool early = live && (in_publish || (!by_clock && idle && owed > bound));
   const bool secondary = !live || by_clock || early;

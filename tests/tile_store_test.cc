@@ -861,6 +861,36 @@ TEST(TileStoreTest, OverviewsCatchUpAfterAKillBetweenOverviewUpdates) {
   EXPECT_TRUE(nlohmann::json::parse(in)["overviews_owed"].empty());
 }
 
+// The first publish brings the overviews and frames.gpkg whatever overview_interval_s says
+// (the tests above rely on it). The clock used to start from a default time point, the steady
+// clock's epoch, which is the machine's boot: on a machine up for less than the interval the
+// first update never came, and the two kill tests above failed on a freshly booted VM (one hung
+// waiting for it). An interval longer than any uptime makes that deterministic.
+TEST(TileStoreTest, TheFirstPublishUpdatesTheOverviewsHoweverRecentlyTheMachineBooted) {
+  const fs::path dir = FreshDir("first_update") / "s.irmosaic";
+  TileStoreOptions options = Options(dir);
+  options.overview_interval_s = 1e9;  // 31 years.
+  auto store = TileStore::Open(options, Georef());
+  FrameRecord record;
+  record.index = 0;
+  record.footprint_m = {Eigen::Vector2d(0, 0), {50, 0}, {50, -40}, {0, -40}};
+  record.status = "registered";
+  store->PutFrameRecord(record);
+  PaintSquare(store.get(), {0, 0}, 512, 1000.0);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(store->stats().overview_updates, 1);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (store->stats().overviews_pending && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  EXPECT_FALSE(store->stats().overviews_pending);
+  EXPECT_EQ(store::ReadFramesGpkg(dir / "frames.gpkg").size(), 1u);
+  // A second publish is not due by the clock: no second update.
+  PaintSquare(store.get(), {0, 0}, 512, 2000.0);
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(store->stats().overview_updates, 1);
+}
+
 // Bytes this process has passed to write(2) and its kin so far, all threads (/proc/self/io).
 int64_t BytesWrittenByThisProcess() {
   std::ifstream io("/proc/self/io");
