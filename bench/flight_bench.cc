@@ -705,6 +705,8 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"paint_wait_s", st.paint_wait_ms_total / 1000.0},
             {"tiles_written", st.tiles_written},
             {"overview_tiles_written", st.overview_tiles_written},
+            {"blocks_copied", st.blocks_copied},
+            {"blocks_encoded", st.blocks_encoded},
             {"publishes", st.publishes},
             {"overview_updates", st.overview_updates},
             {"overview_updates_early", st.overview_updates_early},
@@ -1250,7 +1252,9 @@ int main(int argc, char** argv) {
               << " KiB/frame; registered " << f["frames_registered"].get<int64_t>() << ", POS only "
               << f["frames_pos_only"].get<int64_t>() << "\n"
               << "tiles written " << f["tiles_written"].get<int64_t>() << " (overviews "
-              << f["overview_tiles_written"].get<int64_t>() << "; read back "
+              << f["overview_tiles_written"].get<int64_t>() << "; blocks copied "
+              << f["blocks_copied"].get<int64_t>() << ", encoded "
+              << f["blocks_encoded"].get<int64_t>() << "; read back "
               << f["tile_reloads"].get<int64_t>() << ", overviews read "
               << f["overview_reads"].get<int64_t>() << ", copied before painting "
               << f["tile_copies"].get<int64_t>() << "), re-renders "
@@ -1321,7 +1325,9 @@ int main(int argc, char** argv) {
               << p["deferred_rerenders"].get<int64_t>() << "), optimizer " << p["optimizer_solves"]
               << " solves\n"
               << "  tiles written " << p["tiles_written"].get<int64_t>() << " (overviews "
-              << p["overview_tiles_written"].get<int64_t>() << "), publishes "
+              << p["overview_tiles_written"].get<int64_t>() << "; blocks copied "
+              << p["blocks_copied"].get<int64_t>() << ", encoded "
+              << p["blocks_encoded"].get<int64_t>() << "), publishes "
               << p["publishes"].get<int64_t>() << " (overview updates "
               << p["overview_updates"].get<int64_t>() << ", of them early "
               << p["overview_updates_early"].get<int64_t>() << ", "

@@ -270,7 +270,7 @@ double ThreadCpuMs() {
 // minimum over `rounds` rounds of `count` operations each (the VM's timing noise).
 struct TileCost {
   double write_ms = 0, write_gdal_ms = 0, read_ms = 0, read_gdal_ms = 0, halve_ms = 0,
-         halve_edge_ms = 0;
+         halve_edge_ms = 0, write_one_block_ms = 0, write_edge_ms = 0;
   int64_t bytes = 0, gdal_bytes = 0;
 };
 
@@ -295,7 +295,7 @@ TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int co
   double gt[6];
   st::TileGeoTransform(0.5, size, 0, {1, 2}, gt);
   st::TilePools pools(size, type, 4);  // As the writer halves.
-  TileCost best{1e30, 1e30, 1e30, 1e30, 1e30, 1e30, 0, 0};
+  TileCost best{1e30, 1e30, 1e30, 1e30, 1e30, 1e30, 1e30, 1e30, 0, 0};
   // A tile at the mosaic's edge: a footprint's straight border across it, covered on one side.
   st::TileImage edge{tile.data.clone(), cv::Mat::zeros(size, size, CV_8U)};
   const std::vector<cv::Point> covered = {{0, 0}, {size, 0}, {size, size / 3}, {0, size}};
@@ -312,6 +312,21 @@ TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int co
     t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) best.gdal_bytes = st::WriteTileAtomic(path, tile, gt, by_gdal);
     best.write_gdal_ms = std::min(best.write_gdal_ms, (ThreadCpuMs() - t0) / count);
+    // Written again with one of its four blocks changed: the other three copied from its file.
+    st::TileFileLayout layout;
+    st::WriteTileAtomic(path, tile, gt, settings, nullptr, &layout);
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) {
+      const st::TileReuse reuse{&layout, st::BlockMask{1}};
+      st::TileFileLayout next;
+      st::WriteTileAtomic(path, tile, gt, settings, &reuse, &next);
+      layout = std::move(next);
+    }
+    best.write_one_block_ms = std::min(best.write_one_block_ms, (ThreadCpuMs() - t0) / count);
+    // The edge tile (a third uncovered: blocks of one value in both bands).
+    t0 = ThreadCpuMs();
+    for (int k = 0; k < count; ++k) st::WriteTileAtomic(path, edge, gt, settings);
+    best.write_edge_ms = std::min(best.write_edge_ms, (ThreadCpuMs() - t0) / count);
     st::WriteTileAtomic(path, tile, gt, settings);  // What the reads below read.
     t0 = ThreadCpuMs();
     for (int k = 0; k < count; ++k) st::ReadTile(path, size, type);
@@ -429,8 +444,10 @@ int main(int argc, char** argv) {
     std::cout << "one 512 x 512 " << name << " tile (ZSTD 1), CPU ms on one thread: write "
               << std::setprecision(2) << cost.write_ms << " (" << cost.bytes / 1024
               << " KiB; through GDAL's encoding " << cost.write_gdal_ms << ", "
-              << cost.gdal_bytes / 1024 << " KiB), read back " << cost.read_ms
-              << " (through GDAL's decoding " << cost.read_gdal_ms << "), halve " << cost.halve_ms
+              << cost.gdal_bytes / 1024 << " KiB; one block of four changed "
+              << cost.write_one_block_ms << "; an edge tile " << cost.write_edge_ms
+              << "), read back " << cost.read_ms << " (through GDAL's decoding "
+              << cost.read_gdal_ms << "), halve " << cost.halve_ms
               << " (an edge tile, half covered " << cost.halve_edge_ms
               << ") (minimum of 5 rounds of 40)\n";
   }
@@ -447,6 +464,10 @@ int main(int argc, char** argv) {
                           {"tile_write_cpu_ms", tile_cost.write_ms},
                           {"tile_write_gdal_cpu_ms", tile_cost.write_gdal_ms},
                           {"byte_tile_write_gdal_cpu_ms", tile_cost8.write_gdal_ms},
+                          {"tile_write_one_block_cpu_ms", tile_cost.write_one_block_ms},
+                          {"byte_tile_write_one_block_cpu_ms", tile_cost8.write_one_block_ms},
+                          {"edge_tile_write_cpu_ms", tile_cost.write_edge_ms},
+                          {"byte_edge_tile_write_cpu_ms", tile_cost8.write_edge_ms},
                           {"tile_read_cpu_ms", tile_cost.read_ms},
                           {"tile_read_gdal_cpu_ms", tile_cost.read_gdal_ms},
                           {"byte_tile_write_cpu_ms", tile_cost8.write_ms},

@@ -29,6 +29,7 @@
 #include <optional>
 #include <set>
 #include <sstream>
+#include <tuple>
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -202,6 +203,7 @@ void WriteFileAtomic(const fs::path& path, const std::string& content, bool dura
 namespace {
 
 thread_local int64_t t_direct_tile_writes = 0;
+thread_local int64_t t_blocks_copied = 0, t_blocks_encoded = 0;
 
 // GDAL's GTiff encoding of a tile, in memory; `data` is CPLFree'd with the holder.
 struct GdalEncoded {
@@ -415,15 +417,68 @@ struct ZstdCompressContextDeleter {
   void operator()(ZSTD_CCtx* context) const { ZSTD_freeCCtx(context); }
 };
 
+// The sample every pixel of the block at (x0, y0) holds, if they all hold one (an alpha block
+// fully covered or uncovered, the data under it), read as the plane's own type.
+template <typename P>
+std::optional<P> ConstantBlock(const cv::Mat& plane, int x0, int y0, int block) {
+  const P first = plane.ptr<P>(y0)[x0];
+  for (int r = 0; r < block; ++r) {
+    const P* row = plane.ptr<P>(y0 + r) + x0;
+    int c = 0;
+#if defined(__SSE2__)
+    const __m128i want = sizeof(P) == 1 ? _mm_set1_epi8(static_cast<char>(first))
+                                        : _mm_set1_epi16(static_cast<int16_t>(first));
+    constexpr int kLanes = 16 / sizeof(P);
+    for (; c + kLanes <= block; c += kLanes) {
+      const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(row + c));
+      if (_mm_movemask_epi8(_mm_cmpeq_epi8(v, want)) != 0xFFFF) return std::nullopt;
+    }
+#endif
+    for (; c < block; ++c) {
+      if (row[c] != first) return std::nullopt;
+    }
+  }
+  return first;
+}
+
+// Compressed blocks of one sample value, by (sample bytes, value, block side, zstd level): a
+// block of one value (most alpha blocks, and the data under an uncovered one) compresses to the
+// same bytes every time, so it is differenced and compressed once per writer thread.
+using ConstantBlockKey = std::tuple<int, uint32_t, int, int>;
+constexpr size_t kConstantBlocksKept = 16;
+
 // One band of the tile (`plane`, CV_8U or CV_16U; an 8-bit alpha plane of a UInt16 tile is
 // scaled by 257 as GDAL's path does), block by block: rows differenced, compressed, handed to
 // libtiff as finished blocks. False with *failure on any error.
+// The previous file of a tile being written again: its blocks not in `changed` are copied.
+struct BlockSource {
+  int fd = -1;
+  const TileFileLayout* layout = nullptr;
+  BlockMask changed = kAllBlocks;
+};
+
+// Copies block `index` (TIFF tile order) of the previous file into the new one. False when it
+// cannot (a short read): the caller encodes the block instead.
+bool CopyBlock(TIFF* tif, ttile_t index, const BlockSource& source, std::vector<uint8_t>* buffer,
+               bool* written) {
+  *written = false;
+  const uint64_t length = source.layout->lengths[index], offset = source.layout->offsets[index];
+  buffer->resize(length);
+  if (pread(source.fd, buffer->data(), length, static_cast<off_t>(offset)) !=
+      static_cast<ssize_t>(length)) {
+    return false;
+  }
+  *written = TIFFWriteRawTile(tif, index, buffer->data(), static_cast<tmsize_t>(length)) >= 0;
+  return true;
+}
+
 template <typename T>
 bool WriteBandBlocks(TIFF* tif, const cv::Mat& plane, uint16_t sample, int block, int level,
-                     std::string* failure) {
+                     const BlockSource& source, std::string* failure) {
   thread_local std::unique_ptr<ZSTD_CCtx, ZstdCompressContextDeleter> context(ZSTD_createCCtx());
   thread_local std::vector<uint8_t> raw, packed;
   thread_local std::vector<uint16_t> widened;
+  thread_local std::map<ConstantBlockKey, std::vector<uint8_t>> constant_blocks;
   if (!context) {
     *failure = "libzstd could not make a compression context";
     return false;
@@ -433,8 +488,48 @@ bool WriteBandBlocks(TIFF* tif, const cv::Mat& plane, uint16_t sample, int block
   packed.resize(ZSTD_compressBound(block_bytes));
   widened.resize(static_cast<size_t>(block));
   const bool scale = sizeof(T) == 2 && plane.depth() == CV_8U;
+  thread_local std::vector<uint8_t> copied;
+  const int across = plane.cols / block;
   for (int y0 = 0; y0 < plane.rows; y0 += block) {
     for (int x0 = 0; x0 < plane.cols; x0 += block) {
+      const ttile_t index =
+          TIFFComputeTile(tif, static_cast<uint32_t>(x0), static_cast<uint32_t>(y0), 0, sample);
+      const int bit = (y0 / block) * across + x0 / block;
+      if (source.fd >= 0 && !(source.changed >> bit & 1)) {
+        bool written = false;
+        if (CopyBlock(tif, index, source, &copied, &written)) {
+          if (!written) {
+            *failure = std::strerror(errno);
+            return false;
+          }
+          if (sample == 0) ++t_blocks_copied;
+          continue;
+        }
+      }
+      if (sample == 0) ++t_blocks_encoded;
+      std::optional<uint32_t> constant;
+      if (scale) {
+        if (const auto v = ConstantBlock<uint8_t>(plane, x0, y0, block)) constant = *v * 257u;
+      } else if (const auto v = ConstantBlock<T>(plane, x0, y0, block)) {
+        constant = *v;
+      }
+      std::vector<uint8_t>* known = nullptr;
+      if (constant) {
+        const ConstantBlockKey key{static_cast<int>(sizeof(T)), *constant, block, level};
+        const auto it = constant_blocks.find(key);
+        if (it != constant_blocks.end()) {
+          known = &it->second;
+        } else if (constant_blocks.size() < kConstantBlocksKept) {
+          known = &constant_blocks[key];  // Filled below.
+        }
+      }
+      if (known && !known->empty()) {
+        if (TIFFWriteRawTile(tif, index, known->data(), static_cast<tmsize_t>(known->size())) < 0) {
+          *failure = std::strerror(errno);
+          return false;
+        }
+        continue;
+      }
       for (int r = 0; r < block; ++r) {
         T* out = reinterpret_cast<T*>(raw.data()) + static_cast<size_t>(r) * block;
         if (scale) {
@@ -451,8 +546,7 @@ bool WriteBandBlocks(TIFF* tif, const cv::Mat& plane, uint16_t sample, int block
         *failure = std::string("libzstd: ") + ZSTD_getErrorName(length);
         return false;
       }
-      const ttile_t index =
-          TIFFComputeTile(tif, static_cast<uint32_t>(x0), static_cast<uint32_t>(y0), 0, sample);
+      if (known) known->assign(packed.data(), packed.data() + length);
       if (TIFFWriteRawTile(tif, index, packed.data(), static_cast<tmsize_t>(length)) < 0) {
         *failure = std::strerror(errno);
         return false;
@@ -464,8 +558,36 @@ bool WriteBandBlocks(TIFF* tif, const cv::Mat& plane, uint16_t sample, int block
 
 // Writes `tile` to `temp` in the direct layout (TileEncoding::kDirect) with libtiff; its size in
 // *bytes. False with *failure on any error (the caller removes `temp`).
-bool WriteTileDirect(const fs::path& temp, const TileImage& tile, const double gt[6],
-                     const TileWriteSettings& settings, const GeoTags& geo, int64_t* bytes,
+// The previous file at `path` opened for copying blocks, if it is the one `reuse` describes
+// (same device, inode and size) and has the layout of `blocks` blocks per band; -1 otherwise.
+int OpenPreviousTile(const fs::path& path, const TileReuse* reuse, int blocks) {
+  if (reuse == nullptr || reuse->previous == nullptr || reuse->changed == kAllBlocks ||
+      blocks > 64 || reuse->previous->offsets.size() != 2 * static_cast<size_t>(blocks) ||
+      reuse->previous->lengths.size() != reuse->previous->offsets.size()) {
+    return -1;
+  }
+  const int fd = open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return -1;
+  struct stat st {};
+  if (fstat(fd, &st) != 0 || static_cast<uint64_t>(st.st_dev) != reuse->previous->device ||
+      static_cast<uint64_t>(st.st_ino) != reuse->previous->inode ||
+      static_cast<int64_t>(st.st_size) != reuse->previous->size) {
+    close(fd);
+    return -1;
+  }
+  for (size_t k = 0; k < reuse->previous->offsets.size(); ++k) {
+    if (reuse->previous->offsets[k] + reuse->previous->lengths[k] >
+        static_cast<uint64_t>(st.st_size)) {
+      close(fd);
+      return -1;
+    }
+  }
+  return fd;
+}
+
+bool WriteTileDirect(const fs::path& temp, const fs::path& path, const TileImage& tile,
+                     const double gt[6], const TileWriteSettings& settings, const GeoTags& geo,
+                     const TileReuse* reuse, TileFileLayout* layout, int64_t* bytes,
                      std::string* failure) {
   GdalErrorCapture capture;  // libtiff's messages go to GDAL's handler once GTiff has run.
   TIFF* tif = TIFFOpen(temp.c_str(), "wl");
@@ -517,11 +639,31 @@ bool WriteTileDirect(const fs::path& temp, const TileImage& tile, const double g
   }
   if (!ok) *failure = "libtiff refused a tag";
   const int level = settings.compression_level;
+  const int blocks = (size / block) * (size / block);
+  BlockSource source;
   if (ok) {
-    ok = wide ? WriteBandBlocks<uint16_t>(tif, tile.data, 0, block, level, failure) &&
-                    WriteBandBlocks<uint16_t>(tif, tile.alpha, 1, block, level, failure)
-              : WriteBandBlocks<uint8_t>(tif, tile.data, 0, block, level, failure) &&
-                    WriteBandBlocks<uint8_t>(tif, tile.alpha, 1, block, level, failure);
+    source.fd = OpenPreviousTile(path, reuse, blocks);
+    source.layout = reuse ? reuse->previous : nullptr;
+    source.changed = reuse ? reuse->changed : kAllBlocks;
+    ok = wide ? WriteBandBlocks<uint16_t>(tif, tile.data, 0, block, level, source, failure) &&
+                    WriteBandBlocks<uint16_t>(tif, tile.alpha, 1, block, level, source, failure)
+              : WriteBandBlocks<uint8_t>(tif, tile.data, 0, block, level, source, failure) &&
+                    WriteBandBlocks<uint8_t>(tif, tile.alpha, 1, block, level, source, failure);
+    if (source.fd >= 0) close(source.fd);
+  }
+  // Where the blocks went, before TIFFFlush writes the directory (and lets go of the fields).
+  if (ok && layout != nullptr) {
+    uint64_t* offsets = nullptr;
+    uint64_t* lengths = nullptr;
+    struct stat st {};
+    if (TIFFGetField(tif, TIFFTAG_TILEOFFSETS, &offsets) == 1 &&
+        TIFFGetField(tif, TIFFTAG_TILEBYTECOUNTS, &lengths) == 1 && offsets && lengths &&
+        fstat(TIFFFileno(tif), &st) == 0) {
+      layout->offsets.assign(offsets, offsets + 2 * blocks);
+      layout->lengths.assign(lengths, lengths + 2 * blocks);
+      layout->device = static_cast<uint64_t>(st.st_dev);
+      layout->inode = static_cast<uint64_t>(st.st_ino);
+    }
   }
   if (ok && TIFFFlush(tif) != 1) {
     ok = false;
@@ -535,6 +677,7 @@ bool WriteTileDirect(const fs::path& temp, const TileImage& tile, const double g
     *failure = error.message();
     return false;
   }
+  if (layout != nullptr) layout->size = *bytes;
   return true;
 }
 
@@ -561,9 +704,28 @@ void HorizontalDifferencing(const uint8_t* in, uint8_t* out, int n) { Difference
 void HorizontalDifferencing(const uint16_t* in, uint16_t* out, int n) { DifferenceRow(in, out, n); }
 
 int64_t DirectTileWrites() { return t_direct_tile_writes; }
+int64_t BlocksCopied() { return t_blocks_copied; }
+int64_t BlocksEncoded() { return t_blocks_encoded; }
+
+BlockMask BlocksOverlapping(const cv::Rect& rect, int tile_size) {
+  const int block = std::min(kBlockSize, tile_size);
+  const int across = (tile_size + block - 1) / block;
+  if (across * across > 64) return kAllBlocks;
+  const cv::Rect r = rect & cv::Rect(0, 0, tile_size, tile_size);
+  if (r.empty()) return 0;
+  BlockMask mask = 0;
+  for (int by = r.y / block; by <= (r.br().y - 1) / block; ++by) {
+    for (int bx = r.x / block; bx <= (r.br().x - 1) / block; ++bx) {
+      mask |= BlockMask{1} << (by * across + bx);
+    }
+  }
+  return mask;
+}
 
 int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const double gt[6],
-                        const TileWriteSettings& settings) {
+                        const TileWriteSettings& settings, const TileReuse* reuse,
+                        TileFileLayout* layout) {
+  if (layout != nullptr) *layout = TileFileLayout{};
   const fs::path temp = TemporaryPathFor(path);
   const int size = tile.data.cols;
   const int block = std::min(kBlockSize, size);
@@ -587,7 +749,7 @@ int64_t WriteTileAtomic(const fs::path& path, const TileImage& tile, const doubl
   std::string failure;
   int64_t length = 0;
   if (geo) {
-    if (WriteTileDirect(temp, tile, gt, settings, *geo, &length, &failure)) {
+    if (WriteTileDirect(temp, path, tile, gt, settings, *geo, reuse, layout, &length, &failure)) {
       ++t_direct_tile_writes;
     }
   } else {

@@ -78,10 +78,40 @@ struct TileWriteSettings {
   TileEncoding encoding = TileEncoding::kDirect;
 };
 
+// The tile's blocks (kBlockSize, or the tile if smaller) as bits: block (row r, column c) of a
+// tile n blocks wide is bit r * n + c. Tiles of more than 64 blocks have no mask (all change).
+using BlockMask = uint64_t;
+inline constexpr BlockMask kAllBlocks = ~BlockMask{0};
+// The blocks of a tile of `tile_size` that `rect` (tile pixels) overlaps.
+BlockMask BlocksOverlapping(const cv::Rect& rect, int tile_size);
+
+// Where a tile file written by the direct encoder holds its compressed blocks (TIFF tile order:
+// the data band's blocks, then the alpha band's), and which file that was (device, inode, size),
+// so that the next write of the same tile copies the blocks that did not change instead of
+// encoding them again.
+struct TileFileLayout {
+  uint64_t device = 0, inode = 0;
+  int64_t size = 0;
+  std::vector<uint64_t> offsets, lengths;
+};
+// What the file at a tile's path holds and which blocks of the tile to write differ from it.
+struct TileReuse {
+  const TileFileLayout* previous = nullptr;
+  BlockMask changed = kAllBlocks;
+};
+
 // Writes a tile GeoTIFF to a temporary name beside `path` and renames it into place. Returns the
-// file's size. Throws OutputError naming the file on any failure (the old file stays).
+// file's size. Throws OutputError naming the file on any failure (the old file stays). With
+// `reuse`, a direct write copies the unchanged blocks' bytes from the file now at `path` when
+// that is still the file `reuse->previous` describes (else it encodes every block); with
+// `layout`, a direct write says where its blocks went (layout->offsets empty otherwise).
 int64_t WriteTileAtomic(const std::filesystem::path& path, const TileImage& tile,
-                        const double gt[6], const TileWriteSettings& settings);
+                        const double gt[6], const TileWriteSettings& settings,
+                        const TileReuse* reuse = nullptr, TileFileLayout* layout = nullptr);
+// Blocks this thread's direct writes copied from the previous file, and blocks they encoded
+// (both bands counted once per block), for tests and statistics.
+int64_t BlocksCopied();
+int64_t BlocksEncoded();
 // Tiles this thread has written with the direct encoder (WriteTileAtomic's kDirect path), for
 // tests.
 int64_t DirectTileWrites();

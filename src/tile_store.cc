@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <bit>
 #include <bitset>
 #include <cerrno>
 #include <chrono>
@@ -22,11 +23,14 @@
 #include <functional>
 #include <limits>
 #include <list>
+#include <map>
+#include <memory>
 #include <mutex>
 #include <opencv2/core/hal/intrin.hpp>
 #include <optional>
 #include <set>
 #include <thread>
+#include <tuple>
 #include <type_traits>
 #include <unordered_map>
 #include <utility>
@@ -243,6 +247,65 @@ bool AnyPositiveWeight(const cv::Mat& weight, const cv::Rect& roi) {
   return false;
 }
 
+// The blocks of a tile that a paint changed: those where the patch's part (`patch_roi`, landing
+// on `tile_roi`) has a weight above zero. A footprint's bounding box covers blocks its
+// quadrilateral misses.
+store::BlockMask BlocksPainted(const cv::Mat& weight, const cv::Rect& patch_roi,
+                               const cv::Rect& tile_roi, int tile_size) {
+  const store::BlockMask overlapping = store::BlocksOverlapping(tile_roi, tile_size);
+  if (overlapping == store::kAllBlocks || std::popcount(overlapping) <= 1) return overlapping;
+  const int block = std::min(store::kBlockSize, tile_size);
+  const int across = (tile_size + block - 1) / block;
+  const cv::Point shift = patch_roi.tl() - tile_roi.tl();
+  store::BlockMask painted = 0;
+  for (int bit = 0; bit < 64; ++bit) {
+    if (!(overlapping >> bit & 1)) continue;
+    const cv::Rect part =
+        cv::Rect((bit % across) * block, (bit / across) * block, block, block) & tile_roi;
+    if (AnyPositiveWeight(weight, part + shift)) painted |= store::BlockMask{1} << bit;
+  }
+  return painted;
+}
+
+// The layouts of the tile files the writer wrote last (the most recent `capacity`), by level and
+// tile, so that a tile written again copies its unchanged blocks from its file.
+class LayoutCache {
+ public:
+  using Key = std::tuple<int, int64_t, int64_t>;
+  explicit LayoutCache(size_t capacity) : capacity_(capacity) {}
+  const store::TileFileLayout* Find(int level, const TileIndex& tile) const {
+    const auto it = layouts_.find({level, tile.first, tile.second});
+    return it == layouts_.end() ? nullptr : &it->second.first;
+  }
+  void Put(int level, const TileIndex& tile, store::TileFileLayout layout) {
+    const Key key{level, tile.first, tile.second};
+    const auto it = layouts_.find(key);
+    if (layout.offsets.empty()) {  // Not written directly: nothing to copy from next time.
+      if (it != layouts_.end()) {
+        order_.erase(it->second.second);
+        layouts_.erase(it);
+      }
+      return;
+    }
+    if (it != layouts_.end()) {
+      it->second.first = std::move(layout);
+      order_.splice(order_.end(), order_, it->second.second);
+      return;
+    }
+    order_.push_back(key);
+    layouts_.emplace(key, std::make_pair(std::move(layout), std::prev(order_.end())));
+    while (layouts_.size() > capacity_) {
+      layouts_.erase(order_.front());
+      order_.pop_front();
+    }
+  }
+
+ private:
+  size_t capacity_;
+  std::list<Key> order_;  // Least recently written first.
+  std::map<Key, std::pair<store::TileFileLayout, std::list<Key>::iterator>> layouts_;
+};
+
 template <typename T>
 bool BlendInto(const cv::Mat& image, const cv::Mat& weight, const cv::Rect& patch_roi,
                cv::Mat* data, cv::Mat* alpha, const cv::Rect& tile_roi) {
@@ -350,6 +413,8 @@ struct TileStore::Impl {
     // them (it lets go, under the lock, once the tile is on disk and halved for the overviews).
     bool shared = false;
     uint64_t last_use = 0;
+    // Blocks painted since the writer's last snapshot (a write copies the others from the file).
+    store::BlockMask changed_blocks = 0;
   };
   std::map<TileIndex, CachedTile> cache;
   // Tile buffers (mat_pool.h), made at first use when the tile size and type are settled:
@@ -491,8 +556,15 @@ struct TileStore::Impl {
   void RefreshSlice(std::unique_lock<std::mutex>& lock);
   // Writes a level-0 tile of a snapshot (lock not held on entry), then under the lock notes it
   // on disk and lets its cached tile go; returns the file's size.
-  int64_t WriteLevel0Tile(const TileIndex& index, const TileImage& image,
+  int64_t WriteLevel0Tile(const TileIndex& index, const TileImage& image, store::BlockMask changed,
                           std::unique_lock<std::mutex>& lock);
+  // Writes a tile of any level (writer thread), copying the blocks outside `changed` from its
+  // file when the writer knows that file's layout; notes the new file's layout.
+  int64_t WriteTile(int level, const TileIndex& index, const TileImage& image,
+                    store::BlockMask changed_blocks);
+  std::unique_ptr<LayoutCache> layouts;  // Writer thread only; made at Open.
+  // Changed blocks of a publish's or a refresh slice's snapshot, by tile.
+  std::map<TileIndex, store::BlockMask> snapshot_changed;
   // Widens m's display range by the covered values of `top` (the highest level's tiles); true
   // if it moved enough to rewrite the .qlr files.
   static bool WidenDisplayRange(store::Manifest* m, const std::vector<const TileImage*>& top);
@@ -624,6 +696,7 @@ std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
   std::map<TileIndex, TileImage> written;
   for (const auto& [parent, kids] : by_parent) {
     TileImage image = OverviewTile(level, parent);
+    store::BlockMask quadrants = 0;  // Of these children: the file has the others.
     for (const auto* kid : kids) {
       const TileImage& small = kid->second;  // Halved by the caller.
       const int qy = static_cast<int>(kid->first.first - 2 * parent.first);
@@ -631,11 +704,10 @@ std::map<TileIndex, TileImage> TileStore::Impl::UpdateOverviewLevel(
       const cv::Rect quadrant(qx * half, qy * half, half, half);
       small.data.copyTo(image.data(quadrant));
       small.alpha.copyTo(image.alpha(quadrant));
+      quadrants |= store::BlocksOverlapping(quadrant, options.tile_size);
     }
-    double gt[6];
-    store::TileGeoTransform(georef.gsd_m, options.tile_size, level, parent, gt);
     fs::create_directories(root / ("tiles/" + std::to_string(level)));
-    *bytes += store::WriteTileAtomic(PathOf(level, parent), image, gt, WriteSettings());
+    *bytes += WriteTile(level, parent, image, quadrants);
     ++*tiles;
     RememberOverview(level, parent, image);
     written.emplace(parent, std::move(image));
@@ -870,6 +942,8 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   stats.writer_busy_ms += work.busy_ms;
   stats.writer_cpu_ms += work.cpu_ms;
   stats.tiles_written += tiles;
+  stats.blocks_copied = store::BlocksCopied();
+  stats.blocks_encoded = store::BlocksEncoded();
   stats.overview_tiles_written += tiles;
   stats.bytes_written += bytes;
   stats.overview_reads = overview_reads;
@@ -880,11 +954,22 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   changed.notify_all();
 }
 
-int64_t TileStore::Impl::WriteLevel0Tile(const TileIndex& index, const TileImage& image,
-                                         std::unique_lock<std::mutex>& lock) {
+int64_t TileStore::Impl::WriteTile(int level, const TileIndex& index, const TileImage& image,
+                                   store::BlockMask changed_blocks) {
   double gt[6];
-  store::TileGeoTransform(georef.gsd_m, options.tile_size, 0, index, gt);
-  const int64_t bytes = store::WriteTileAtomic(PathOf(0, index), image, gt, WriteSettings());
+  store::TileGeoTransform(georef.gsd_m, options.tile_size, level, index, gt);
+  const store::TileReuse reuse{layouts->Find(level, index), changed_blocks};
+  store::TileFileLayout layout;
+  const int64_t bytes =
+      store::WriteTileAtomic(PathOf(level, index), image, gt, WriteSettings(), &reuse, &layout);
+  layouts->Put(level, index, std::move(layout));
+  return bytes;
+}
+
+int64_t TileStore::Impl::WriteLevel0Tile(const TileIndex& index, const TileImage& image,
+                                         store::BlockMask changed_blocks,
+                                         std::unique_lock<std::mutex>& lock) {
+  const int64_t bytes = WriteTile(0, index, image, changed_blocks);
   lock.lock();
   level0_on_disk.insert(index);
   auto it = cache.find(index);
@@ -903,9 +988,11 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
   const size_t n = std::min(order.size(), static_cast<size_t>(options.refresh_slice_tiles));
   std::partial_sort(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(n), order.end());
   std::map<TileIndex, TileImage> images;
+  snapshot_changed.clear();
   for (size_t k = 0; k < n; ++k) {
     CachedTile& tile = cache.at(order[k].second);
     images[order[k].second] = tile.image;  // Shared as a publish's snapshot is.
+    snapshot_changed[order[k].second] = std::exchange(tile.changed_blocks, 0);
     tile.shared = true;
     tile.writing = true;
     tile.refreshed = false;
@@ -917,7 +1004,7 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
     // Listed tiles replaced in place, as overview tiles are: no index to write, the generation
     // stays. Their overviews take them with the next update.
     for (const auto& [index, image] : images) {
-      bytes += WriteLevel0Tile(index, image, lock);
+      bytes += WriteLevel0Tile(index, image, snapshot_changed.at(index), lock);
       ++tiles;
       overview_owed[index] = store::HalveTile(image, &Pools());
     }
@@ -930,6 +1017,7 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
     for (auto& [index, tile] : cache) {
       if (!tile.writing) continue;
       tile.writing = false;
+      tile.changed_blocks = store::kAllBlocks;  // Its file may be either: encode it all.
       if (!tile.dirty && !tile.refreshed) {
         tile.refreshed = true;
         ++refreshed_count;
@@ -944,6 +1032,8 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
   stats.writer_busy_ms += work.busy_ms;
   stats.writer_cpu_ms += work.cpu_ms;
   stats.tiles_written += tiles;
+  stats.blocks_copied = store::BlocksCopied();
+  stats.blocks_encoded = store::BlocksEncoded();
   stats.bytes_written += bytes;
   stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
   stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
@@ -990,6 +1080,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   refresh_paused = false;
   replaced_since_publish = false;
   ++publish_epoch;
+  snapshot_changed.clear();
   for (auto& [index, tile] : cache) {
     if (!tile.dirty && !(tile.refreshed && (closing || refreshed_taken.count(index) > 0))) {
       continue;
@@ -997,6 +1088,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     // Copy-on-write: the snapshot shares the buffers (no copy under the lock); the next Paint
     // into this tile copies them first.
     level0[index] = tile.image;
+    snapshot_changed[index] = std::exchange(tile.changed_blocks, 0);
     tile.shared = true;
     tile.writing = true;
     if (tile.dirty) --dirty_count;
@@ -1075,7 +1167,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   try {
     // 2. Level-0 tiles, each to a temporary name then renamed.
     for (const auto& [index, image] : level0) {
-      bytes += WriteLevel0Tile(index, image, lock);
+      bytes += WriteLevel0Tile(index, image, snapshot_changed.at(index), lock);
       ++tiles_written;
     }
     // The published manifest changes only once the index is written.
@@ -1193,6 +1285,8 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   stats.overview_reads = overview_reads;
   stats.index_bytes_total = index_bytes;
   stats.tiles_written += tiles_written + overview_written;
+  stats.blocks_copied = store::BlocksCopied();
+  stats.blocks_encoded = store::BlocksEncoded();
   stats.overview_tiles_written += overview_written;
   stats.bytes_written += bytes;
   if (error.empty()) {
@@ -1220,6 +1314,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     for (auto& [index, tile] : cache) {
       if (tile.writing) {
         tile.writing = false;
+        tile.changed_blocks = store::kAllBlocks;  // Its file may be either: encode it all.
         if (!tile.dirty) {
           tile.dirty = true;
           ++dirty_count;
@@ -1428,6 +1523,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
       !fs::exists(s.root / (options.layer_name + "_live.qlr"))) {
     s.WriteQlr(s.manifest);
   }
+  s.layouts = std::make_unique<LayoutCache>(8 * options.max_cached_tiles + 64);
   s.writer = std::thread([&s] { s.WriterLoop(); });
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }
@@ -1528,6 +1624,7 @@ void TileStore::Paint(const cv::Mat& image, const cv::Mat& weight, cv::Point ori
           break;
       }
       if (!painted) continue;
+      tile.changed_blocks |= BlocksPainted(weight, patch_roi, tile_roi, t);
       tile.paint_epoch = s.publish_epoch;
       // A refresh of a tile on disk may wait for a refresh slice; anything else goes out with
       // the next publish.

@@ -1104,6 +1104,14 @@ struct LayoutCase {
   int size;
   std::string compression;
   bool direct;
+  // How the store writes such a tile (the CRS of the tests' flight origin).
+  store::TileWriteSettings Settings() const {
+    store::TileWriteSettings settings;
+    settings.type = type;
+    settings.compression = compression;
+    settings.crs_wkt = LocalFrame(kLat0, kLon0).CrsWkt();
+    return settings;
+  }
 };
 
 // A tile as a mosaic holds: smooth ground with noise (the predictor leaves small differences)
@@ -1136,7 +1144,6 @@ store::TileImage SyntheticTile(int size, PixelType type, std::mt19937* random) {
 TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
   GDALAllRegister();
   const fs::path dir = FreshDir("direct_read");
-  const LocalFrame frame(kLat0, kLon0);
   std::mt19937 random(3);
   const std::vector<LayoutCase> cases = {
       {PixelType::kByte, 512, "ZSTD", true},     {PixelType::kUInt16, 512, "ZSTD", true},
@@ -1148,10 +1155,7 @@ TEST(TileStoreTest, TilesReadBackDirectlyEqualGdalsDecoding) {
     SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
                  std::to_string(static_cast<int>(c.type)));
     const store::TileImage tile = SyntheticTile(c.size, c.type, &random);
-    store::TileWriteSettings settings;
-    settings.type = c.type;
-    settings.compression = c.compression;
-    settings.crs_wkt = frame.CrsWkt();
+    const store::TileWriteSettings settings = c.Settings();
     double gt[6];
     store::TileGeoTransform(kGsd, c.size, 0, {-3, 2}, gt);
     const fs::path path = dir / "tile.tif";
@@ -1215,72 +1219,89 @@ TEST(TileStoreTest, TilesWrittenDirectlyEqualGdalsWriting) {
     const char* value = GDALGetMetadataItem(ds, key, "IMAGE_STRUCTURE");
     return std::string(value ? value : "");
   };
+  const auto bytes_of = [](const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  };
   for (const LayoutCase& c : cases) {
-    SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
-                 std::to_string(static_cast<int>(c.type)));
-    store::TileImage tile = SyntheticTile(c.size, c.type, &random);
-    store::TileWriteSettings settings;
-    settings.type = c.type;
-    settings.compression = c.compression;
-    settings.crs_wkt = frame.CrsWkt();
-    double gt[6];
-    store::TileGeoTransform(kGsd, c.size, 1, {-3, 2}, gt);
-    const fs::path direct_path = dir / "direct.tif", gdal_path = dir / "gdal.tif";
-    store::WriteTileAtomic(direct_path, tile, gt, settings);  // The first of its kind, maybe.
-    const int64_t before = store::DirectTileWrites();
-    store::WriteTileAtomic(direct_path, tile, gt, settings);
-    EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
-    settings.encoding = store::TileEncoding::kGdal;
-    store::WriteTileAtomic(gdal_path, tile, gt, settings);
-    EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
+    // Variant 1 has blocks of one value, which the encoder compresses once and then copies: the
+    // first block covered with one data value, the last uncovered (one block: uncovered).
+    for (int variant = 0; variant < 2; ++variant) {
+      SCOPED_TRACE(std::to_string(c.size) + " " + c.compression + " type " +
+                   std::to_string(static_cast<int>(c.type)) + " variant " +
+                   std::to_string(variant));
+      store::TileImage tile = SyntheticTile(c.size, c.type, &random);
+      if (variant == 1) {
+        const int block = std::min(256, c.size), last = c.size - block;
+        tile.data(cv::Rect(0, 0, block, block)).setTo(77);
+        tile.alpha(cv::Rect(0, 0, block, block)).setTo(255);
+        tile.data(cv::Rect(last, last, block, block)).setTo(0);
+        tile.alpha(cv::Rect(last, last, block, block)).setTo(0);
+      }
+      store::TileWriteSettings settings = c.Settings();
+      double gt[6];
+      store::TileGeoTransform(kGsd, c.size, 1, {-3, 2}, gt);
+      const fs::path direct_path = dir / "direct.tif", gdal_path = dir / "gdal.tif";
+      store::WriteTileAtomic(direct_path, tile, gt, settings);  // The first of its kind, maybe.
+      const int64_t before = store::DirectTileWrites();
+      store::WriteTileAtomic(direct_path, tile, gt, settings);
+      EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
+      // Written again, with every block of one value already compressed: the same bytes.
+      const std::string first_bytes = bytes_of(direct_path);
+      store::WriteTileAtomic(direct_path, tile, gt, settings);
+      EXPECT_TRUE(bytes_of(direct_path) == first_bytes);
+      settings.encoding = store::TileEncoding::kGdal;
+      store::WriteTileAtomic(gdal_path, tile, gt, settings);
+      EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 2 : 0);
 
-    GDALDatasetH a = GDALOpen(direct_path.c_str(), GA_ReadOnly);
-    GDALDatasetH b = GDALOpen(gdal_path.c_str(), GA_ReadOnly);
-    ASSERT_NE(a, nullptr);
-    ASSERT_NE(b, nullptr);
-    EXPECT_EQ(GDALGetRasterXSize(a), c.size);
-    EXPECT_EQ(GDALGetRasterYSize(a), c.size);
-    ASSERT_EQ(GDALGetRasterCount(a), 2);
-    double gta[6], gtb[6];
-    ASSERT_EQ(GDALGetGeoTransform(a, gta), CE_None);
-    ASSERT_EQ(GDALGetGeoTransform(b, gtb), CE_None);
-    for (int k = 0; k < 6; ++k) {
-      EXPECT_EQ(gta[k], gt[k]) << k;
-      EXPECT_EQ(gtb[k], gt[k]) << k;
+      GDALDatasetH a = GDALOpen(direct_path.c_str(), GA_ReadOnly);
+      GDALDatasetH b = GDALOpen(gdal_path.c_str(), GA_ReadOnly);
+      ASSERT_NE(a, nullptr);
+      ASSERT_NE(b, nullptr);
+      EXPECT_EQ(GDALGetRasterXSize(a), c.size);
+      EXPECT_EQ(GDALGetRasterYSize(a), c.size);
+      ASSERT_EQ(GDALGetRasterCount(a), 2);
+      double gta[6], gtb[6];
+      ASSERT_EQ(GDALGetGeoTransform(a, gta), CE_None);
+      ASSERT_EQ(GDALGetGeoTransform(b, gtb), CE_None);
+      for (int k = 0; k < 6; ++k) {
+        EXPECT_EQ(gta[k], gt[k]) << k;
+        EXPECT_EQ(gtb[k], gt[k]) << k;
+      }
+      EXPECT_STREQ(GDALGetProjectionRef(a), GDALGetProjectionRef(b));
+      OGRSpatialReference expected(frame.CrsWkt().c_str()), got(GDALGetProjectionRef(a));
+      EXPECT_TRUE(got.IsSame(&expected));
+      for (const char* key : {"COMPRESSION", "PREDICTOR", "INTERLEAVE"}) {
+        EXPECT_EQ(item(a, key), item(b, key)) << key;
+      }
+      for (int band = 1; band <= 2; ++band) {
+        GDALRasterBandH ba = GDALGetRasterBand(a, band), bb = GDALGetRasterBand(b, band);
+        EXPECT_EQ(GDALGetRasterDataType(ba), GDALGetRasterDataType(bb));
+        EXPECT_EQ(GDALGetRasterColorInterpretation(ba), GDALGetRasterColorInterpretation(bb));
+        int wa = 0, ha = 0, wb = 0, hb = 0;
+        GDALGetBlockSize(ba, &wa, &ha);
+        GDALGetBlockSize(bb, &wb, &hb);
+        EXPECT_EQ(wa, wb);
+        EXPECT_EQ(ha, hb);
+        cv::Mat sa(c.size, c.size, CV_64F), sb(c.size, c.size, CV_64F);
+        ASSERT_EQ(GDALRasterIO(ba, GF_Read, 0, 0, c.size, c.size, sa.ptr(), c.size, c.size,
+                               GDT_Float64, 0, 0),
+                  CE_None);
+        ASSERT_EQ(GDALRasterIO(bb, GF_Read, 0, 0, c.size, c.size, sb.ptr(), c.size, c.size,
+                               GDT_Float64, 0, 0),
+                  CE_None);
+        EXPECT_EQ(cv::norm(sa, sb, cv::NORM_INF), 0.0) << "band " << band;
+      }
+      EXPECT_EQ(GDALGetRasterColorInterpretation(GDALGetRasterBand(a, 2)), GCI_AlphaBand);
+      GDALClose(a);
+      GDALClose(b);
+      const int64_t reads = store::DirectTileReads();
+      const store::TileImage back = store::ReadTile(direct_path, c.size, c.type);
+      const bool readable_directly = c.compression == "ZSTD" && c.type != PixelType::kFloat32;
+      EXPECT_EQ(store::DirectTileReads() - reads, readable_directly ? 1 : 0);
+      EXPECT_EQ(cv::norm(back.data, tile.data, cv::NORM_INF), 0.0);
+      EXPECT_EQ(cv::norm(back.alpha, tile.alpha, cv::NORM_INF), 0.0);
     }
-    EXPECT_STREQ(GDALGetProjectionRef(a), GDALGetProjectionRef(b));
-    OGRSpatialReference expected(frame.CrsWkt().c_str()), got(GDALGetProjectionRef(a));
-    EXPECT_TRUE(got.IsSame(&expected));
-    for (const char* key : {"COMPRESSION", "PREDICTOR", "INTERLEAVE"}) {
-      EXPECT_EQ(item(a, key), item(b, key)) << key;
-    }
-    for (int band = 1; band <= 2; ++band) {
-      GDALRasterBandH ba = GDALGetRasterBand(a, band), bb = GDALGetRasterBand(b, band);
-      EXPECT_EQ(GDALGetRasterDataType(ba), GDALGetRasterDataType(bb));
-      EXPECT_EQ(GDALGetRasterColorInterpretation(ba), GDALGetRasterColorInterpretation(bb));
-      int wa = 0, ha = 0, wb = 0, hb = 0;
-      GDALGetBlockSize(ba, &wa, &ha);
-      GDALGetBlockSize(bb, &wb, &hb);
-      EXPECT_EQ(wa, wb);
-      EXPECT_EQ(ha, hb);
-      cv::Mat sa(c.size, c.size, CV_64F), sb(c.size, c.size, CV_64F);
-      ASSERT_EQ(GDALRasterIO(ba, GF_Read, 0, 0, c.size, c.size, sa.ptr(), c.size, c.size,
-                             GDT_Float64, 0, 0),
-                CE_None);
-      ASSERT_EQ(GDALRasterIO(bb, GF_Read, 0, 0, c.size, c.size, sb.ptr(), c.size, c.size,
-                             GDT_Float64, 0, 0),
-                CE_None);
-      EXPECT_EQ(cv::norm(sa, sb, cv::NORM_INF), 0.0) << "band " << band;
-    }
-    EXPECT_EQ(GDALGetRasterColorInterpretation(GDALGetRasterBand(a, 2)), GCI_AlphaBand);
-    GDALClose(a);
-    GDALClose(b);
-    const int64_t reads = store::DirectTileReads();
-    const store::TileImage back = store::ReadTile(direct_path, c.size, c.type);
-    const bool readable_directly = c.compression == "ZSTD" && c.type != PixelType::kFloat32;
-    EXPECT_EQ(store::DirectTileReads() - reads, readable_directly ? 1 : 0);
-    EXPECT_EQ(cv::norm(back.data, tile.data, cv::NORM_INF), 0.0);
-    EXPECT_EQ(cv::norm(back.alpha, tile.alpha, cv::NORM_INF), 0.0);
   }
   // The predictor both ways, at every row length around the vector width.
   for (int n = 1; n <= 40; ++n) {
@@ -1301,6 +1322,91 @@ TEST(TileStoreTest, TilesWrittenDirectlyEqualGdalsWriting) {
     EXPECT_EQ(diff8, bytes) << n;
     EXPECT_EQ(diff16, words) << n;
   }
+  fs::remove_all(dir);
+}
+
+// A tile written again copies the compressed blocks that did not change from its file instead
+// of encoding them (a publish rewrites a tile whole when any part of it was painted; an overview
+// tile changes by the quadrants of its changed children): the file is the one a full encoding
+// gives, byte for byte. A file at the path that is not the one the layout describes (replaced
+// by another writer) is not copied from.
+TEST(TileStoreTest, UnchangedBlocksAreCopiedFromTheTilesFile) {
+  GDALAllRegister();
+  const fs::path dir = FreshDir("copied_blocks");
+  const LocalFrame frame(kLat0, kLon0);
+  std::mt19937 random(11);
+  const auto bytes_of = [](const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  };
+  for (const PixelType type : {PixelType::kByte, PixelType::kUInt16}) {
+    SCOPED_TRACE(GdalTypeNameOf(type));
+    store::TileWriteSettings settings;
+    settings.type = type;
+    settings.crs_wkt = frame.CrsWkt();
+    double gt[6];
+    store::TileGeoTransform(kGsd, 512, 0, {4, -1}, gt);
+    const fs::path path = dir / "tile.tif", whole = dir / "whole.tif";
+    store::TileImage tile = SyntheticTile(512, type, &random);
+    store::WriteTileAtomic(path, tile, gt, settings);  // The first of its kind goes through GDAL.
+    store::TileFileLayout layout;
+    store::WriteTileAtomic(path, tile, gt, settings, nullptr, &layout);
+    ASSERT_EQ(layout.offsets.size(), 8u);  // 4 blocks, 2 bands.
+    // Block 2 (bottom left) painted: 3 blocks copied, 1 encoded.
+    tile.data(cv::Rect(10, 300, 50, 40)).setTo(type == PixelType::kByte ? 201 : 40001);
+    tile.alpha(cv::Rect(10, 300, 50, 40)).setTo(255);
+    const store::BlockMask changed = store::BlocksOverlapping(cv::Rect(10, 300, 50, 40), 512);
+    EXPECT_EQ(changed, store::BlockMask{4});
+    const int64_t copied = store::BlocksCopied(), encoded = store::BlocksEncoded();
+    const store::TileReuse reuse{&layout, changed};
+    store::TileFileLayout next;
+    store::WriteTileAtomic(path, tile, gt, settings, &reuse, &next);
+    EXPECT_EQ(store::BlocksCopied() - copied, 3);
+    EXPECT_EQ(store::BlocksEncoded() - encoded, 1);
+    store::WriteTileAtomic(whole, tile, gt, settings);
+    EXPECT_TRUE(bytes_of(path) == bytes_of(whole));
+    const store::TileImage back =
+        store::ReadTile(path, 512, type, nullptr, store::TileDecoding::kGdal);
+    EXPECT_EQ(cv::norm(back.data, tile.data, cv::NORM_INF), 0.0);
+    EXPECT_EQ(cv::norm(back.alpha, tile.alpha, cv::NORM_INF), 0.0);
+    // Another file put at the path (same size, another inode): every block encoded.
+    fs::copy_file(whole, dir / "other.tif", fs::copy_options::overwrite_existing);
+    fs::rename(dir / "other.tif", path);
+    tile.data(cv::Rect(10, 300, 50, 40)).setTo(7);
+    const int64_t copied_before = store::BlocksCopied();
+    const store::TileReuse stale{&next, changed};
+    store::WriteTileAtomic(path, tile, gt, settings, &stale, nullptr);
+    EXPECT_EQ(store::BlocksCopied(), copied_before);
+    store::WriteTileAtomic(whole, tile, gt, settings);
+    EXPECT_TRUE(bytes_of(path) == bytes_of(whole));
+  }
+  // In a store: one block of one level-0 tile painted again; its level-1 tile changes by the
+  // quadrant of that child. 512-pixel tiles, 2 x 2 of them, overviews with every publish.
+  const fs::path store_dir = dir / "s.irmosaic";
+  TileStoreOptions options = Options(store_dir, 512);
+  options.overview_interval_s = 0.0;
+  options.pixel_type = PixelType::kByte;
+  auto store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {0, 0}, 1024, 100.0);
+  store->WaitPublished(store->RequestPublish());
+  const TileStore::Stats first = store->stats();
+  PaintSquare(store.get(), {600, 50}, 10, 200.0);  // Tile (0, 1), its top-left block.
+  store->WaitPublished(store->RequestPublish());
+  const TileStore::Stats second = store->stats();
+  EXPECT_EQ(second.tiles_written - first.tiles_written, 2);  // Level 0 and level 1.
+  EXPECT_EQ(second.blocks_copied - first.blocks_copied, 6);
+  EXPECT_EQ(second.blocks_encoded - first.blocks_encoded, 2);
+  store->Close();
+  cv::Mat expected(512, 512, CV_8U, cv::Scalar(100));
+  expected(cv::Rect(88, 50, 10, 10)).setTo(200);
+  const store::TileImage level0 = store::ReadTile(
+      store_dir / "tiles/0/0_1.tif", 512, PixelType::kByte, nullptr, store::TileDecoding::kGdal);
+  EXPECT_EQ(cv::norm(level0.data, expected, cv::NORM_INF), 0.0);
+  cv::Mat expected_half(512, 512, CV_8U, cv::Scalar(100));
+  expected_half(cv::Rect(256 + 44, 25, 5, 5)).setTo(200);
+  const store::TileImage level1 = store::ReadTile(
+      store_dir / "tiles/1/0_0.tif", 512, PixelType::kByte, nullptr, store::TileDecoding::kGdal);
+  EXPECT_EQ(cv::norm(level1.data, expected_half, cv::NORM_INF), 0.0);
   fs::remove_all(dir);
 }
 

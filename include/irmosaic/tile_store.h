@@ -226,7 +226,11 @@ class IRMOSAIC_EXPORT TileStore {
     int64_t tiles_written = 0;           // Tile files written (all levels).
     int64_t overview_tiles_written = 0;  // Of those: overview tiles (levels above 0).
     int64_t bytes_written = 0;           // Bytes of tile files written.
-    int64_t publishes = 0;               // Generations published by this process.
+    // Blocks (256 x 256, both bands) of the tiles written: copied from the tile's previous file,
+    // unchanged since it was written, or encoded (docs/store.md, "Writing tiles").
+    int64_t blocks_copied = 0;
+    int64_t blocks_encoded = 0;
+    int64_t publishes = 0;  // Generations published by this process.
     // Of those: publishes that started bringing the overviews (and frames.gpkg) up to date,
     // by the clock (overview_interval_s) or early, when the level-0 tiles owed to them passed
     // 4 x max_cached_tiles; and of the early ones, those done whole inside the publish
