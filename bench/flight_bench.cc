@@ -128,6 +128,7 @@ struct Tuning {
   int optimizer_nice = -1;
   double max_output_backlog_s = -1.0;
   int writer_nice = -1;
+  double sync_interval_s = -1.0;    // MosaickerOptions::sync_interval_s (-1: the default).
   int lsm_level = -1;               // MosaickerOptions::registration.fine.lsm_level.
   int keypoints_at_lsm_level = -1;  // ... .fine.keypoints_at_lsm_level (0 / 1).
   double max_pair_sigma_px = -1.0;  // ... .fine.max_joint_sigma_px (the pair accept criterion).
@@ -398,6 +399,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.fusion.max_output_backlog_s = g_tuning.max_output_backlog_s;
   }
   if (g_tuning.writer_nice >= 0) options.writer_nice = g_tuning.writer_nice;
+  if (g_tuning.sync_interval_s >= 0.0) options.sync_interval_s = g_tuning.sync_interval_s;
   if (g_tuning.max_cached_tiles > 0) options.max_cached_tiles = g_tuning.max_cached_tiles;
   if (g_tuning.refresh_quiet_publishes >= 0) {
     options.refresh_quiet_publishes = g_tuning.refresh_quiet_publishes;
@@ -1092,6 +1094,8 @@ int main(int argc, char** argv) {
       g_tuning.max_output_backlog_s = std::stod(value());
     } else if (a == "--writer-nice") {
       g_tuning.writer_nice = std::stoi(value());
+    } else if (a == "--sync-interval") {
+      g_tuning.sync_interval_s = std::stod(value());
     } else if (a == "--lsm-level") {
       g_tuning.lsm_level = std::stoi(value());
     } else if (a == "--max-pair-sigma") {
@@ -1142,25 +1146,26 @@ int main(int argc, char** argv) {
     } else if (a == "--child") {
       child = value();
     } else {
-      std::cerr << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
-                   "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
-                   "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
-                   "[--settled-rerender-threshold PX] [--settled-rerenders] "
-                   "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
-                   "[--registration-threads N] [--max-neighbours N] [--lsm-level N] "
-                   "[--keypoints-at-level 0|1] "
-                   "[--max-pair-sigma PX] "
-                   "[--max-coarse-pair-sigma PX] [--wide-radius PX] "
-                   "[--optimizer-nice N] [--writer-nice N] [--max-output-backlog S] "
-                   "[--overview-interval S] [--tile-size N] "
-                   "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
-                   "[--refresh-slice-tiles N] [--refresh-quiet-publishes N] "
-                   "[--images-in-memory N] "
-                   "[--ground-cache-mb N] "
-                   "[--mmap-threshold BYTES] "
-                   "[--cv-threads N] [--seed N] [--first N] [--bit-depth 8|16] "
-                   "[--malloc-info DIR] "
-                   "[--exit-before-finish]\n";
+      std::cerr
+          << "usage: flight_bench [--frames N] [--paced-frames N] [--compare 100,300] "
+             "[--no-compare] [--no-optimize] [--store DIR] [--json FILE] [--timeout S] "
+             "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
+             "[--settled-rerender-threshold PX] [--settled-rerenders] "
+             "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
+             "[--registration-threads N] [--max-neighbours N] [--lsm-level N] "
+             "[--keypoints-at-level 0|1] "
+             "[--max-pair-sigma PX] "
+             "[--max-coarse-pair-sigma PX] [--wide-radius PX] "
+             "[--optimizer-nice N] [--writer-nice N] [--sync-interval S] [--max-output-backlog S] "
+             "[--overview-interval S] [--tile-size N] "
+             "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
+             "[--refresh-slice-tiles N] [--refresh-quiet-publishes N] "
+             "[--images-in-memory N] "
+             "[--ground-cache-mb N] "
+             "[--mmap-threshold BYTES] "
+             "[--cv-threads N] [--seed N] [--first N] [--bit-depth 8|16] "
+             "[--malloc-info DIR] "
+             "[--exit-before-finish]\n";
       return 2;
     }
   }

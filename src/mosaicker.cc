@@ -306,6 +306,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
     return fail("writer_nice " + std::to_string(writer_nice) + " must be in 0..19");
   }
   if (refresh_slice_tiles < 0) return fail("refresh_slice_tiles must be >= 0");
+  if (!(sync_interval_s >= 0.0) || !std::isfinite(sync_interval_s)) {
+    return fail("sync_interval_s must be >= 0 seconds");
+  }
   if (refresh_quiet_publishes < 1 || refresh_quiet_publishes > 1000) {
     return fail("refresh_quiet_publishes must be in 1..1000");
   }
@@ -862,6 +865,7 @@ class Mosaicker::Impl : public MosaicSink {
     store_options.refresh_slice_tiles = options_.refresh_slice_tiles;
     store_options.refresh_quiet_publishes = options_.refresh_quiet_publishes;
     store_options.writer_nice = options_.writer_nice;
+    store_options.sync_interval_s = options_.sync_interval_s;
     store_options.on_publish = options_.on_publish;
     store_options.pixel_type = type;
     std::unique_ptr<TileStore> opened = TileStore::Open(store_options, georef_);

@@ -1,6 +1,7 @@
 // TileStore: the level-0 tile cache painted by callers, and the writer thread that publishes.
 #include "irmosaic/tile_store.h"
 
+#include <fcntl.h>
 #include <gdal.h>
 #include <pthread.h>
 #include <sys/resource.h>
@@ -98,6 +99,8 @@ bool TileStoreOptions::IsValid(std::string* error) const {
               " must be -1 (automatic) or 0..16 with tile_size a multiple of 2^levels";
   } else if (!(overview_interval_s >= 0.0) || !std::isfinite(overview_interval_s)) {
     problem = "overview_interval_s must be >= 0 seconds";
+  } else if (!(sync_interval_s >= 0.0) || !std::isfinite(sync_interval_s)) {
+    problem = "sync_interval_s must be >= 0 seconds";
   } else if (overview_slice_tiles < 1) {
     problem = "overview_slice_tiles must be at least 1";
   } else if (refresh_slice_tiles < 0) {
@@ -531,6 +534,14 @@ struct TileStore::Impl {
   std::map<std::pair<int, TileIndex>, TileImage> overview_cache;
   std::list<std::pair<int, TileIndex>> overview_lru;
   std::thread writer;
+  // The file system flusher (sync_interval_s): its own lock, so a flush stuck behind a slow disk
+  // holds up nothing but Close.
+  std::thread syncer;
+  std::mutex sync_mutex;
+  std::condition_variable sync_wake;
+  bool sync_stop = false;
+  std::atomic<int64_t> syncs{0};
+  void SyncLoop();
 
   fs::path PathOf(int level, const TileIndex& tile) const {
     return root / store::TileRelativePath(level, tile);
@@ -1332,6 +1343,23 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   changed.notify_all();
 }
 
+void TileStore::Impl::SyncLoop() {
+  pthread_setname_np(pthread_self(), "irm-store-sync");
+  const int fd = open(root.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0)
+    return;  // Flushing is a service, not a condition of publishing: the kernel's own
+             // write-back still runs.
+  const auto interval = std::chrono::duration<double>(options.sync_interval_s);
+  std::unique_lock<std::mutex> lock(sync_mutex);
+  while (!sync_wake.wait_for(lock, interval, [this] { return sync_stop; })) {
+    lock.unlock();
+    // A failure (EIO) surfaces where it matters, in the writes and renames of the publishes.
+    if (syncfs(fd) == 0) ++syncs;
+    lock.lock();
+  }
+  close(fd);
+}
+
 void TileStore::Impl::WriterLoop() {
   pthread_setname_np(pthread_self(), "irm-tile-writer");
   // Background work yields to the painting (registration) threads on a busy machine.
@@ -1525,6 +1553,7 @@ std::unique_ptr<TileStore> TileStore::Open(const TileStoreOptions& requested,
   }
   s.layouts = std::make_unique<LayoutCache>(8 * options.max_cached_tiles + 64);
   s.writer = std::thread([&s] { s.WriterLoop(); });
+  if (options.sync_interval_s > 0.0) s.syncer = std::thread([&s] { s.SyncLoop(); });
   return std::unique_ptr<TileStore>(new TileStore(std::move(impl)));
 }
 
@@ -1838,6 +1867,14 @@ void TileStore::Close() {
     s.changed.notify_all();
   }
   s.writer.join();
+  if (s.syncer.joinable()) {
+    {
+      std::lock_guard<std::mutex> lock(s.sync_mutex);
+      s.sync_stop = true;
+    }
+    s.sync_wake.notify_all();
+    s.syncer.join();
+  }
   if (error.empty()) store::SettleFramesGpkg(s.root / "frames.gpkg");
   {
     std::lock_guard<std::mutex> lock(s.mutex);
@@ -1851,6 +1888,7 @@ TileStore::Stats TileStore::stats() const {
   const Impl& s = *impl_;
   std::lock_guard<std::mutex> lock(s.mutex);
   Stats out = s.stats;
+  out.syncs = s.syncs.load();
   out.frame_records_held = s.frames.size();
   std::vector<double> latencies = s.publish_latencies_ms;
   if (!latencies.empty()) {

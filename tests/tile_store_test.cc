@@ -891,6 +891,55 @@ TEST(TileStoreTest, TheFirstPublishUpdatesTheOverviewsHoweverRecentlyTheMachineB
   EXPECT_EQ(store->stats().overview_updates, 1);
 }
 
+// The store flushes its file system every sync_interval_s on a thread of its own (published
+// tiles on the disk within about that long; on ext4 without a journal it keeps file creation
+// cheap), never with 0; Close does not wait out a long interval; a negative or infinite interval
+// is refused with the option named.
+TEST(TileStoreTest, TheFileSystemIsFlushedEverySyncInterval) {
+  const fs::path dir = FreshDir("sync");
+  TileStoreOptions options = Options(dir / "a.irmosaic");
+  options.sync_interval_s = 0.02;
+  auto store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {0, 0}, 64, 1000.0);
+  store->WaitPublished(store->RequestPublish());
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (store->stats().syncs < 3 && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  EXPECT_GE(store->stats().syncs, 3);
+  store->Close();
+
+  options = Options(dir / "b.irmosaic");
+  options.sync_interval_s = 0.0;
+  store = TileStore::Open(options, Georef());
+  PaintSquare(store.get(), {0, 0}, 64, 1000.0);
+  store->WaitPublished(store->RequestPublish());
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_EQ(store->stats().syncs, 0);
+  store->Close();
+
+  options = Options(dir / "c.irmosaic");
+  options.sync_interval_s = 1e6;
+  store = TileStore::Open(options, Georef());
+  const auto close_start = std::chrono::steady_clock::now();
+  store->Close();  // Wakes the flusher instead of waiting 11 days.
+  EXPECT_LT(std::chrono::steady_clock::now() - close_start, std::chrono::seconds(60));
+  EXPECT_EQ(store->stats().syncs, 0);
+
+  for (const double bad :
+       {-1.0, std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN()}) {
+    options = Options(dir / "d.irmosaic");
+    options.sync_interval_s = bad;
+    try {
+      TileStore::Open(options, Georef());
+      ADD_FAILURE() << bad << " accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("sync_interval_s"), std::string::npos) << e.what();
+    }
+  }
+  fs::remove_all(dir);
+}
+
 // Bytes this process has passed to write(2) and its kin so far, all threads (/proc/self/io).
 int64_t BytesWrittenByThisProcess() {
   std::ifstream io("/proc/self/io");

@@ -60,6 +60,9 @@ struct MosaickerOptions {
   double overview_interval_s = 2.0;
   // The store's writer thread's nice increment (TileStoreOptions::writer_nice, 0..19).
   int writer_nice = 5;
+  // How often the store flushes its file system, seconds (TileStoreOptions::sync_interval_s;
+  // 0: never).
+  double sync_interval_s = 2.0;
   int tile_size = 512;               // Store tile side, pixels: a multiple of 16 in [64, 8192].
   std::string compression = "ZSTD";  // Store tiles: "ZSTD", "DEFLATE", "LZW" or "NONE".
   // Write the extent the POS track foresees for the whole flight into the store

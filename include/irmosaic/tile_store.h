@@ -112,7 +112,15 @@ struct TileStoreOptions {
   // 8 times, counting an update under way).
   size_t max_cached_tiles = 64;
   bool durable = false;  // fsync each file before its rename (power-loss safety).
-  int writer_nice = 5;   // Writer thread's nice increment (0: same priority as the caller).
+  // Every sync_interval_s seconds a thread of its own flushes the store's file system
+  // (syncfs(2)), so published tiles are on the disk within about that long (a power loss keeps
+  // them; the kernel's own write-back takes up to ~30 s), without the cost of `durable`. On ext4
+  // without a journal it also keeps creating files cheap: there a new inode skips every inode
+  // freed in the last 5 s, or 305 s while its inode table block is dirty, reading each one's
+  // block, and a writer replacing ~250 tile files a second spent a third of its CPU in that scan
+  // (docs/benchmarks.md, "Session 37"). 0: never.
+  double sync_interval_s = 2.0;
+  int writer_nice = 5;  // Writer thread's nice increment (0: same priority as the caller).
   std::string layer_name = "irmosaic";  // Name of the layers in the .qlr file.
   // Diagnostics: called after each publish, on the writer thread, with what it did
   // (PublishReport): after its files are written, before WaitPublished returns for its
@@ -230,6 +238,7 @@ class IRMOSAIC_EXPORT TileStore {
     // unchanged since it was written, or encoded (docs/store.md, "Writing tiles").
     int64_t blocks_copied = 0;
     int64_t blocks_encoded = 0;
+    int64_t syncs = 0;      // File system flushes (sync_interval_s) done.
     int64_t publishes = 0;  // Generations published by this process.
     // Of those: publishes that started bringing the overviews (and frames.gpkg) up to date,
     // by the clock (overview_interval_s) or early, when the level-0 tiles owed to them passed
