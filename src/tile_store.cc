@@ -1349,7 +1349,8 @@ void TileStore::Impl::SyncLoop() {
   if (fd < 0)
     return;  // Flushing is a service, not a condition of publishing: the kernel's own
              // write-back still runs.
-  const auto interval = std::chrono::duration<double>(options.sync_interval_s);
+  // At most a year: a longer wait would overflow the clock's nanoseconds and return at once.
+  const auto interval = std::chrono::duration<double>(std::min(options.sync_interval_s, 3.2e7));
   std::unique_lock<std::mutex> lock(sync_mutex);
   while (!sync_wake.wait_for(lock, interval, [this] { return sync_stop; })) {
     lock.unlock();

@@ -918,13 +918,19 @@ TEST(TileStoreTest, TheFileSystemIsFlushedEverySyncInterval) {
   EXPECT_EQ(store->stats().syncs, 0);
   store->Close();
 
-  options = Options(dir / "c.irmosaic");
-  options.sync_interval_s = 1e6;
-  store = TileStore::Open(options, Georef());
-  const auto close_start = std::chrono::steady_clock::now();
-  store->Close();  // Wakes the flusher instead of waiting 11 days.
-  EXPECT_LT(std::chrono::steady_clock::now() - close_start, std::chrono::seconds(60));
-  EXPECT_EQ(store->stats().syncs, 0);
+  // Long intervals (one past what the clock's nanoseconds hold) wait, and Close wakes the
+  // flusher instead of waiting them out.
+  for (const double long_interval : {1e6, 1e300}) {
+    options = Options(dir / "c.irmosaic");
+    options.mode = TileStoreOptions::Mode::kOverwrite;
+    options.sync_interval_s = long_interval;
+    store = TileStore::Open(options, Georef());
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    const auto close_start = std::chrono::steady_clock::now();
+    store->Close();
+    EXPECT_LT(std::chrono::steady_clock::now() - close_start, std::chrono::seconds(60));
+    EXPECT_EQ(store->stats().syncs, 0) << long_interval;
+  }
 
   for (const double bad :
        {-1.0, std::numeric_limits<double>::infinity(), std::numeric_limits<double>::quiet_NaN()}) {
