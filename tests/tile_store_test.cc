@@ -40,6 +40,12 @@ namespace {
 namespace fs = std::filesystem;
 constexpr double kLat0 = 47.2, kLon0 = 8.5, kGsd = 0.5;
 
+// A file's whole content (empty if it cannot be read), to compare files byte for byte.
+std::string FileBytes(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
 fs::path FreshDir(const std::string& name) {
   const fs::path dir = fs::temp_directory_path() /
                        ("irmosaic_store_test_" + std::to_string(::getpid()) + "_" + name);
@@ -1274,10 +1280,6 @@ TEST(TileStoreTest, TilesWrittenDirectlyEqualGdalsWriting) {
     const char* value = GDALGetMetadataItem(ds, key, "IMAGE_STRUCTURE");
     return std::string(value ? value : "");
   };
-  const auto bytes_of = [](const fs::path& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), {});
-  };
   for (const LayoutCase& c : cases) {
     // Variant 1 has blocks of one value, which the encoder compresses once and then copies: the
     // first block covered with one data value, the last uncovered (one block: uncovered).
@@ -1302,9 +1304,9 @@ TEST(TileStoreTest, TilesWrittenDirectlyEqualGdalsWriting) {
       store::WriteTileAtomic(direct_path, tile, gt, settings);
       EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 1 : 0);
       // Written again, with every block of one value already compressed: the same bytes.
-      const std::string first_bytes = bytes_of(direct_path);
+      const std::string first_bytes = FileBytes(direct_path);
       store::WriteTileAtomic(direct_path, tile, gt, settings);
-      EXPECT_TRUE(bytes_of(direct_path) == first_bytes);
+      EXPECT_TRUE(FileBytes(direct_path) == first_bytes);
       settings.encoding = store::TileEncoding::kGdal;
       store::WriteTileAtomic(gdal_path, tile, gt, settings);
       EXPECT_EQ(store::DirectTileWrites() - before, c.direct ? 2 : 0);
@@ -1390,10 +1392,6 @@ TEST(TileStoreTest, UnchangedBlocksAreCopiedFromTheTilesFile) {
   const fs::path dir = FreshDir("copied_blocks");
   const LocalFrame frame(kLat0, kLon0);
   std::mt19937 random(11);
-  const auto bytes_of = [](const fs::path& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), {});
-  };
   for (const PixelType type : {PixelType::kByte, PixelType::kUInt16}) {
     SCOPED_TRACE(GdalTypeNameOf(type));
     store::TileWriteSettings settings;
@@ -1419,7 +1417,7 @@ TEST(TileStoreTest, UnchangedBlocksAreCopiedFromTheTilesFile) {
     EXPECT_EQ(store::BlocksCopied() - copied, 3);
     EXPECT_EQ(store::BlocksEncoded() - encoded, 1);
     store::WriteTileAtomic(whole, tile, gt, settings);
-    EXPECT_TRUE(bytes_of(path) == bytes_of(whole));
+    EXPECT_TRUE(FileBytes(path) == FileBytes(whole));
     const store::TileImage back =
         store::ReadTile(path, 512, type, nullptr, store::TileDecoding::kGdal);
     EXPECT_EQ(cv::norm(back.data, tile.data, cv::NORM_INF), 0.0);
@@ -1433,7 +1431,7 @@ TEST(TileStoreTest, UnchangedBlocksAreCopiedFromTheTilesFile) {
     store::WriteTileAtomic(path, tile, gt, settings, &stale, nullptr);
     EXPECT_EQ(store::BlocksCopied(), copied_before);
     store::WriteTileAtomic(whole, tile, gt, settings);
-    EXPECT_TRUE(bytes_of(path) == bytes_of(whole));
+    EXPECT_TRUE(FileBytes(path) == FileBytes(whole));
   }
   // In a store: one block of one level-0 tile painted again; its level-1 tile changes by the
   // quadrant of that child. 512-pixel tiles, 2 x 2 of them, overviews with every publish.
