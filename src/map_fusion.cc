@@ -353,6 +353,7 @@ class MapFusion::Impl {
     if (!window_.empty()) limit = std::min(limit, window_.front()->slot);
     for (const Pair& p : pairs_) limit = std::min(limit, p.base->slot);
     if (solving_) limit = std::min(limit, solving_min_slot_);
+    limit = std::min(limit, solve_reads_from_);
     if (replaying_) limit = std::min(limit, resume_.frozen_slots);
     while (base_slot_ < limit) {
       placements_.pop_front();
@@ -990,6 +991,7 @@ class MapFusion::Impl {
       solving_last_slot_ = frames.back()->slot;
       solving_min_slot_ = solving_first_slot_;
       for (const Pair& p : pairs) solving_min_slot_ = std::min(solving_min_slot_, p.base->slot);
+      solve_reads_from_ = solving_min_slot_;
       for (const Pair& p : pairs) {
         current[p.base->slot] = PlacementAt(p.base->slot);
         current[p.templ->slot] = PlacementAt(p.templ->slot);
@@ -1001,6 +1003,14 @@ class MapFusion::Impl {
       }
       frames_since_solve_ = 0;
     }
+    // The placements stay held until this call returns, however it returns.
+    struct ReadHold {
+      Impl* impl;
+      ~ReadHold() {
+        std::lock_guard<std::mutex> lock(impl->mu_);
+        impl->solve_reads_from_ = SIZE_MAX;
+      }
+    } read_hold{this};
     const size_t first_slot = frames.front()->slot;
     std::map<size_t, std::array<double, 8>> delta;
     for (const auto& [slot, placement] : current) delta[slot].fill(0.0);
@@ -1446,6 +1456,10 @@ class MapFusion::Impl {
   bool solving_ = false;
   size_t solving_first_slot_ = 0, solving_last_slot_ = 0;
   size_t solving_min_slot_ = 0;  // Oldest slot its snapshot holds (a pair's base may be older).
+  // Oldest placement a solve still reads, SIZE_MAX when none runs. Unlike solving_, it holds
+  // past the publish, through the re-renders, to the solve's last look at its frames and
+  // pairs (the lag it leaves on disk): the caller releases placements meanwhile.
+  size_t solve_reads_from_ = SIZE_MAX;
 
   // Resumed runs (Resume): the record, without its placements (they are placements_), and
   // while its frames are pushed again, what the replay needs (producer thread only, except

@@ -1006,6 +1006,70 @@ TEST(MapFusionTest, ASolveDoesNotRerenderAFrameBeforeItsFirstPaint) {
   }
 }
 
+// A caller releases placements (ReleasePlacements, as the Mosaicker does for its frozen frames'
+// file) while a background solve re-renders. The solve reads its frames' and pairs' placements
+// again after its re-renders (the lag it leaves on disk), so none of them may go: here the
+// caller pushes until the solve's frames have left the window and releases all it can while
+// the solve is held in its first re-render. (Reading a released one was a heap use after free
+// that ASan caught, sometimes, in MosaickerApiTest.)
+TEST(MapFusionTest, PlacementsASolveStillReadsAreNotReleased) {
+  const Sweep s = MakeSweep(90, 6, 2.0, 0.3, 37);
+  struct HoldingSink : MosaicSink {
+    std::mutex mu;
+    std::condition_variable cv;
+    std::thread::id producer = std::this_thread::get_id();
+    bool holding = false, released = false, done = false;
+    int64_t held_index = -1;  // The frame whose re-render is held.
+    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+    void FramePlaced(const FramePlacement& p) override {
+      std::unique_lock<std::mutex> lock(mu);
+      if (std::this_thread::get_id() == producer || done) return;
+      done = true;
+      held_index = p.index;
+      holding = true;
+      cv.notify_all();
+      cv.wait_for(lock, std::chrono::seconds(60), [this] { return released; });
+    }
+    double OutputBacklogSeconds() const override { return 0.0; }
+  };
+  FusionOptions options;
+  options.window_frames = 10;
+  options.short_window_frames = 0;
+  options.solve_every_frames = 4;
+  options.rerender_threshold_px = 0.0;  // Every frame a solve moves is a re-render.
+  options.max_rerenders_per_solve = 0;
+  options.compensate_gain = false;
+  HoldingSink sink;
+  MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 11), &sink);
+  const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+  int64_t next = 0;
+  for (; next < 12; ++next) fusion.Push(SweepFrame(s, next, image));
+  {
+    std::unique_lock<std::mutex> lock(sink.mu);
+    ASSERT_TRUE(sink.cv.wait_for(lock, std::chrono::seconds(60), [&] { return sink.holding; }))
+        << "no background solve re-rendered a frame";
+  }
+  // The held solve's frames leave the window (it keeps 2 windows) and the pairs.
+  for (; next < 60; ++next) fusion.Push(SweepFrame(s, next, image));
+  const size_t first_held = fusion.ReleasePlacements(SIZE_MAX);
+  {
+    std::lock_guard<std::mutex> lock(sink.mu);
+    sink.released = true;
+    sink.cv.notify_all();
+  }
+  // Slots are push positions, and the frames were pushed from index 0: slot == index.
+  EXPECT_LE(first_held, static_cast<size_t>(sink.held_index))
+      << "the placement of frame " << sink.held_index
+      << ", which the held solve reads again, was released";
+  for (; next < 90; ++next) fusion.Push(SweepFrame(s, next, image));
+  fusion.Finish();
+  // Once the solve is over, what it held can go: only the window and its pairs stay.
+  EXPECT_GT(fusion.ReleasePlacements(SIZE_MAX), static_cast<size_t>(sink.held_index));
+  const std::vector<FramePlacement> left = fusion.Placements();
+  ASSERT_FALSE(left.empty());
+  EXPECT_EQ(left.back().index, 89);
+}
+
 TEST(MapFusionTest, OptionsAreValidated) {
   FusionOptions options;
   std::string error;

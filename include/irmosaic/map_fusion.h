@@ -288,10 +288,10 @@ class IRMOSAIC_EXPORT MapFusion {
   std::vector<FramePlacement> Placements() const;
 
   // Drops the placements before push-order position `before_slot` that can never change or be
-  // read again (frozen: older than the window, than the bases of its pairs, than a running
-  // solve's or a replay's frames), for a caller that keeps them itself (the Mosaicker's frozen
-  // frames' file), so that memory does not grow with the flight. Returns the first slot still
-  // held (the new start of Placements()).
+  // read again (frozen: older than the window, than the bases of its pairs, than the frames and
+  // pairs of a solve that has not returned, re-renders included, or of a replay), for a caller that
+  // keeps them itself (the Mosaicker's frozen frames' file), so that memory does not grow with the
+  // flight. Returns the first slot still held (the new start of Placements()).
   size_t ReleasePlacements(size_t before_slot);
 
   // A consistent snapshot of the state a resumed run needs, with the placements from push-order
