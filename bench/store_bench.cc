@@ -9,8 +9,14 @@
 // holding 1,000, 15,000 and 90,000 (an hour) records, and the CPU of the writer's unit of work on
 // one thread: one level-0 tile written, read back and halved, and the writer's CPU for a publish
 // adding one tile to a store of 1,000 / 10,000 / 40,000 tiles. --frames 0 runs only those parts.
+// With --zstd-tiles DIR (a store's tiles/0 folder, e.g. one flight_bench --store left), the
+// compressor's settings on those real tiles instead: CPU per tile to apply the predictor and
+// compress the data band's 256 x 256 blocks, to decompress them, and the bytes, for zstd level 1
+// (the store's), 3, smaller match tables, and negative levels with and without their literals
+// entropy-coded (libzstd's experimental ZSTD_c_literalCompressionMode).
 //
 //   store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE] [--dir DIR]
+//               [--zstd-tiles DIR]
 #include <unistd.h>
 
 #include <algorithm>
@@ -29,6 +35,10 @@
 #include <string>
 #include <thread>
 #include <vector>
+
+#define ZSTD_STATIC_LINKING_ONLY  // ZSTD_c_literalCompressionMode (experimental).
+#include <gdal.h>
+#include <zstd.h>
 
 #include "../src/store_internal.h"
 #include "irmosaic/local_frame.h"
@@ -349,10 +359,170 @@ TileCost MeasureTileCost(const cv::Mat& ground, irmosaic::PixelType type, int co
 
 }  // namespace
 
+// One setting of the compressor, as --zstd-tiles measures it.
+struct ZstdSetting {
+  std::string name;
+  int level = 1;
+  bool literals_coded = false;  // Force Huffman coding of literals (negative levels skip it).
+  int hash_log = 0;             // 0: the level's own.
+};
+
+struct ZstdResult {
+  ZstdSetting setting;
+  double compress_ms = 0, decompress_ms = 0, kib_per_tile = 0, ratio = 0;
+};
+
+// The store's level-0 tiles under `tiles_dir` that are at least 90 % covered (what the writer
+// encodes most), at most `count`, spread over the folder; their data band as 8 or 16 bits.
+std::vector<cv::Mat> LoadCoveredTiles(const fs::path& tiles_dir, size_t count) {
+  namespace st = irmosaic::store;
+  std::vector<fs::path> paths;
+  for (const auto& entry : fs::directory_iterator(tiles_dir)) {
+    if (entry.path().extension() == ".tif") paths.push_back(entry.path());
+  }
+  std::sort(paths.begin(), paths.end());
+  GDALAllRegister();  // ReadTile opens the tiles' headers through GDAL.
+  std::vector<cv::Mat> tiles;
+  const size_t step = std::max<size_t>(1, paths.size() / (4 * count));
+  for (size_t i = 0; i < paths.size() && tiles.size() < count; i += step) {
+    for (const auto type : {irmosaic::PixelType::kByte, irmosaic::PixelType::kUInt16}) {
+      try {
+        const st::TileImage tile = st::ReadTile(paths[i], 512, type);
+        if (static_cast<size_t>(cv::countNonZero(tile.alpha == 255)) >=
+            tile.alpha.total() * 9 / 10) {
+          tiles.push_back(tile.data.clone());
+        }
+        break;
+      } catch (const std::exception&) {  // Of the other type: try it.
+      }
+    }
+  }
+  return tiles;
+}
+
+std::vector<ZstdResult> MeasureZstdSettings(const std::vector<cv::Mat>& tiles) {
+  namespace st = irmosaic::store;
+  const std::vector<ZstdSetting> settings = {{"level 1 (the store's)", 1, false, 0},
+                                             {"level 3", 3, false, 0},
+                                             {"level 1, hashLog 10", 1, false, 10},
+                                             {"level -1", -1, false, 0},
+                                             {"level -5", -5, false, 0},
+                                             {"level -1, literals coded", -1, true, 0},
+                                             {"level -5, literals coded", -5, true, 0},
+                                             {"level -50, literals coded", -50, true, 0}};
+  std::unique_ptr<ZSTD_CCtx, size_t (*)(ZSTD_CCtx*)> compressor(ZSTD_createCCtx(), ZSTD_freeCCtx);
+  std::unique_ptr<ZSTD_DCtx, size_t (*)(ZSTD_DCtx*)> decompressor(ZSTD_createDCtx(), ZSTD_freeDCtx);
+  std::vector<ZstdResult> results;
+  for (const ZstdSetting& setting : settings) {
+    ZSTD_CCtx* c = compressor.get();
+    ZSTD_CCtx_reset(c, ZSTD_reset_session_and_parameters);
+    bool refused = ZSTD_isError(ZSTD_CCtx_setParameter(c, ZSTD_c_compressionLevel, setting.level));
+    if (setting.literals_coded) {
+      refused |=
+          ZSTD_isError(ZSTD_CCtx_setParameter(c, ZSTD_c_literalCompressionMode, ZSTD_ps_enable));
+    }
+    if (setting.hash_log > 0) {
+      refused |= ZSTD_isError(ZSTD_CCtx_setParameter(c, ZSTD_c_hashLog, setting.hash_log));
+    }
+    if (refused) {
+      std::cerr << "store_bench: libzstd refused the setting " << setting.name << "\n";
+      continue;
+    }
+    ZstdResult r{setting};
+    r.compress_ms = r.decompress_ms = 1e30;
+    for (int round = 0; round < 5; ++round) {
+      double compress = 0, decompress = 0, bytes = 0, raw_bytes = 0;
+      for (const cv::Mat& tile : tiles) {
+        const size_t sample = tile.elemSize();
+        const size_t block_bytes = 256 * 256 * sample;
+        std::vector<uint8_t> raw(block_bytes), back(block_bytes),
+            packed(ZSTD_compressBound(block_bytes));
+        for (int y0 = 0; y0 < tile.rows; y0 += 256) {
+          for (int x0 = 0; x0 < tile.cols; x0 += 256) {
+            double t0 = ThreadCpuMs();
+            for (int row = 0; row < 256; ++row) {
+              if (sample == 1) {
+                st::HorizontalDifferencing(tile.ptr<uint8_t>(y0 + row) + x0,
+                                           raw.data() + static_cast<size_t>(row) * 256, 256);
+              } else {
+                st::HorizontalDifferencing(
+                    tile.ptr<uint16_t>(y0 + row) + x0,
+                    reinterpret_cast<uint16_t*>(raw.data()) + static_cast<size_t>(row) * 256, 256);
+              }
+            }
+            const size_t n =
+                ZSTD_compress2(c, packed.data(), packed.size(), raw.data(), block_bytes);
+            double t1 = ThreadCpuMs();
+            compress += t1 - t0;
+            if (ZSTD_isError(n)) throw std::runtime_error(ZSTD_getErrorName(n));
+            const size_t m =
+                ZSTD_decompressDCtx(decompressor.get(), back.data(), back.size(), packed.data(), n);
+            decompress += ThreadCpuMs() - t1;
+            if (ZSTD_isError(m) || back != raw) throw std::runtime_error("zstd round trip");
+            bytes += static_cast<double>(n);
+            raw_bytes += static_cast<double>(block_bytes);
+          }
+        }
+      }
+      const double count = static_cast<double>(tiles.size());
+      r.compress_ms = std::min(r.compress_ms, compress / count);
+      r.decompress_ms = std::min(r.decompress_ms, decompress / count);
+      r.kib_per_tile = bytes / 1024.0 / count;
+      r.ratio = bytes / raw_bytes;
+    }
+    results.push_back(r);
+  }
+  return results;
+}
+
+int RunZstdSettings(const fs::path& tiles_dir, const std::string& json_path) {
+  const std::vector<cv::Mat> tiles = LoadCoveredTiles(tiles_dir, 200);
+  if (tiles.empty()) {
+    std::cerr << "store_bench: --zstd-tiles " << tiles_dir
+              << ": no level-0 tile at least 90 % covered there; give a store's tiles/0 folder\n";
+    return 1;
+  }
+  const std::vector<ZstdResult> results = MeasureZstdSettings(tiles);
+  std::cout << "store_bench: zstd settings on " << tiles.size() << " covered 512 x 512 tiles of "
+            << tiles_dir.string() << " (" << (tiles[0].elemSize() == 1 ? "Byte" : "UInt16")
+            << "; data band, predictor 2, 256 x 256 blocks; CPU ms per tile, minimum of 5 rounds; "
+               "libzstd "
+            << ZSTD_versionString() << ")\n\n";
+  std::cout << std::left << std::setw(28) << "setting" << std::right << std::setw(14)
+            << "compress ms" << std::setw(15) << "decompress ms" << std::setw(13) << "KiB/tile"
+            << std::setw(10) << "of raw"
+            << "\n"
+            << std::fixed;
+  nlohmann::json json = nlohmann::json::array();
+  for (const ZstdResult& r : results) {
+    std::cout << std::left << std::setw(28) << r.setting.name << std::right << std::setprecision(3)
+              << std::setw(14) << r.compress_ms << std::setw(15) << r.decompress_ms
+              << std::setprecision(1) << std::setw(13) << r.kib_per_tile << std::setprecision(3)
+              << std::setw(10) << r.ratio << "\n";
+    json.push_back({{"setting", r.setting.name},
+                    {"level", r.setting.level},
+                    {"literals_coded", r.setting.literals_coded},
+                    {"hash_log", r.setting.hash_log},
+                    {"compress_cpu_ms_per_tile", r.compress_ms},
+                    {"decompress_cpu_ms_per_tile", r.decompress_ms},
+                    {"kib_per_tile", r.kib_per_tile},
+                    {"ratio", r.ratio}});
+  }
+  if (!json_path.empty()) {
+    std::ofstream(json_path) << nlohmann::json{
+        {"benchmark", "store_bench --zstd-tiles"},
+        {"tiles", tiles.size()},
+        {"libzstd", ZSTD_versionString()},
+        {"settings", json}}.dump(2);
+  }
+  return 0;
+}
+
 int main(int argc, char** argv) {
   int frames = 375, publish_every = 12;
   double fps = 25.0;
   std::string json_path;
+  fs::path zstd_tiles;
   fs::path dir = fs::temp_directory_path() / ("store_bench_" + std::to_string(::getpid()));
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string key = argv[i], value = argv[i + 1];
@@ -366,12 +536,15 @@ int main(int argc, char** argv) {
       json_path = value;
     else if (key == "--dir")
       dir = value;
+    else if (key == "--zstd-tiles")
+      zstd_tiles = value;
     else {
       std::cerr << "usage: store_bench [--frames N] [--publish_every N] [--fps F] [--json FILE]"
-                   " [--dir DIR]\n";
+                   " [--dir DIR] [--zstd-tiles DIR]\n";
       return 2;
     }
   }
+  if (!zstd_tiles.empty()) return RunZstdSettings(zstd_tiles, json_path);
   const cv::Mat ground = MakeGround(4096);
   const std::vector<std::pair<std::string, int>> configs = {
       {"ZSTD", 1}, {"ZSTD", 9}, {"DEFLATE", 1}, {"DEFLATE", 6}, {"NONE", 1}};
