@@ -8,7 +8,9 @@
 // writes JSON (--json FILE). Then the cost of publishing 25 new footprints into frames.gpkg
 // holding 1,000, 15,000 and 90,000 (an hour) records, and the CPU of the writer's unit of work on
 // one thread: one level-0 tile written, read back and halved, and the writer's CPU for a publish
-// adding one tile to a store of 1,000 / 10,000 / 40,000 tiles. --frames 0 runs only those parts.
+// adding one tile to a store of 1,000 / 10,000 / 40,000 tiles, and the writer's CPU and index
+// bytes of a publish repainting one tile of a store of 100 / 1,000 / 4,000 blocks.
+// --frames 0 runs only those parts.
 // With --zstd-tiles DIR (a store's tiles/0 folder, e.g. one flight_bench --store left), the
 // compressor's settings on those real tiles instead: CPU per tile to apply the predictor and
 // compress the data band's 256 x 256 blocks, to decompress them, and the bytes, for zstd level 1
@@ -231,11 +233,9 @@ double FramesPublishMs(int existing, const fs::path& dir) {
   return Percentile(ms, 0.5);
 }
 
-// Writer CPU (ms) of a publish that adds one level-0 tile to a store already holding `existing`
-// ones: the part of a publish that grows with the flight (the index: manifest.json, the VRTs,
-// the writer's tile lists). 64-pixel Byte tiles so that a large store builds in seconds; overviews
-// by the clock, not due during the measured publishes. Median of 9.
-double IndexPublishMs(int existing, const fs::path& dir) {
+// A fresh store of 64-pixel Byte tiles at `dir` (a large store builds in seconds), overviews by
+// the clock and not due for an hour: what the index measurements below publish into.
+std::unique_ptr<irmosaic::TileStore> OpenIndexStore(const fs::path& dir) {
   fs::remove_all(dir);
   const irmosaic::LocalFrame frame(47.2, 8.5);
   irmosaic::TileStoreOptions options;
@@ -243,7 +243,15 @@ double IndexPublishMs(int existing, const fs::path& dir) {
   options.tile_size = 64;
   options.pixel_type = irmosaic::PixelType::kByte;
   options.overview_interval_s = 3600.0;
-  auto store = irmosaic::TileStore::Open(options, {47.2, 8.5, 0.5, frame.CrsWkt()});
+  return irmosaic::TileStore::Open(options, {47.2, 8.5, 0.5, frame.CrsWkt()});
+}
+
+// Writer CPU (ms) of a publish that adds one level-0 tile to a store already holding `existing`
+// ones: the part of a publish that grows with the flight (the index: manifest.json, the VRTs,
+// the writer's tile lists). 64-pixel Byte tiles so that a large store builds in seconds; overviews
+// by the clock, not due during the measured publishes. Median of 9.
+double IndexPublishMs(int existing, const fs::path& dir) {
+  auto store = OpenIndexStore(dir);
   const int per_row = 250;
   const cv::Mat strip(64, 64 * per_row, CV_8U, cv::Scalar(100));
   const cv::Mat strip_weight(strip.size(), CV_32F, cv::Scalar(1.0f));
@@ -266,6 +274,41 @@ double IndexPublishMs(int existing, const fs::path& dir) {
   store->Close();
   fs::remove_all(dir);
   return Percentile(ms, 0.5);
+}
+
+// A publish that repaints one tile of a store whose level-0 tiles lie one per block of 16 x 16
+// (`blocks` of them: a flight's sparse edges, which make many blocks), as most publishes of a
+// flight do (tiles inside existing blocks): the writer's CPU ms and the index bytes it writes,
+// medians of 9. The index files that do not change are not rewritten; mosaic.vrt and
+// manifest.json are, at every publish.
+struct RepaintIndexCost {
+  double writer_cpu_ms = 0;
+  double index_kib = 0;
+};
+
+RepaintIndexCost RepaintIndexPublish(int blocks, const fs::path& dir) {
+  auto store = OpenIndexStore(dir);
+  const cv::Mat tile(64, 64, CV_8U, cv::Scalar(100));
+  const cv::Mat weight(64, 64, CV_32F, cv::Scalar(1.0f));
+  const int across = static_cast<int>(std::ceil(std::sqrt(static_cast<double>(blocks))));
+  const auto at = [&](int k) { return cv::Point(64 * 16 * (k % across), 64 * 16 * (k / across)); };
+  for (int k = 0; k < blocks; ++k) {
+    store->Paint(tile, weight, at(k));
+    if (k % 256 == 255) store->WaitPublished(store->RequestPublish());
+  }
+  store->WaitPublished(store->RequestPublish());
+  std::vector<double> ms, kib;
+  for (int k = 0; k < 9; ++k) {
+    store->Paint(tile, weight, at(k));
+    const irmosaic::TileStore::Stats before = store->stats();
+    store->WaitPublished(store->RequestPublish());
+    const irmosaic::TileStore::Stats after = store->stats();
+    ms.push_back(after.writer_cpu_ms - before.writer_cpu_ms);
+    kib.push_back(static_cast<double>(after.index_bytes_total - before.index_bytes_total) / 1024);
+  }
+  store->Close();
+  fs::remove_all(dir);
+  return {Percentile(ms, 0.5), Percentile(kib, 0.5)};
 }
 
 double ThreadCpuMs() {
@@ -565,6 +608,10 @@ int main(int argc, char** argv) {
   for (int existing : {1000, 10000, 40000}) {
     index_cost.emplace_back(existing, IndexPublishMs(existing, dir / "index"));
   }
+  std::vector<std::pair<int, RepaintIndexCost>> repaint_cost;
+  for (int blocks : {100, 1000, 4000}) {
+    repaint_cost.emplace_back(blocks, RepaintIndexPublish(blocks, dir / "repaint"));
+  }
   fs::remove_all(dir);
 
   std::cout << "store_bench: " << frames << " frames of 640x512 UInt16 at " << fps
@@ -630,10 +677,21 @@ int main(int argc, char** argv) {
               << " level-0 tiles: " << std::setprecision(2) << ms << " ms (median of 9)\n";
     index_json.push_back({{"existing_tiles", existing}, {"publish_writer_cpu_ms", ms}});
   }
+  nlohmann::json repaint_json = nlohmann::json::array();
+  for (const auto& [blocks, cost] : repaint_cost) {
+    std::cout << "a publish repainting 1 tile of a store of " << blocks
+              << " blocks (a tile each): writer CPU " << std::setprecision(2) << cost.writer_cpu_ms
+              << " ms, index written " << std::setprecision(1) << cost.index_kib
+              << " KiB (medians of 9)\n";
+    repaint_json.push_back({{"blocks", blocks},
+                            {"publish_writer_cpu_ms", cost.writer_cpu_ms},
+                            {"index_kib_written", cost.index_kib}});
+  }
   if (!json_path.empty()) {
     std::ofstream(json_path)
         << nlohmann::json{{"benchmark", "store_bench"},
                           {"index_publish", index_json},
+                          {"repaint_publish", repaint_json},
                           {"tile_write_cpu_ms", tile_cost.write_ms},
                           {"tile_write_gdal_cpu_ms", tile_cost.write_gdal_ms},
                           {"byte_tile_write_gdal_cpu_ms", tile_cost8.write_gdal_ms},

@@ -1213,6 +1213,7 @@ std::string ManifestToJson(const Manifest& manifest) {
         {"time_max_s", manifest.time_max_s},
         {"pending", pending}}},
       {"overview_vrts", manifest.overview_vrts},
+      {"level0_vrt", manifest.level0_vrt},
       {"display_range", manifest.display_hi > manifest.display_lo
                             ? nlohmann::json{manifest.display_lo, manifest.display_hi}
                             : nlohmann::json(nullptr)},
@@ -1521,6 +1522,7 @@ Manifest ReadManifest(const fs::path& path) {
     m.time_max_s = frames.value("time_max_s", 0.0);
     if (frames.contains("pending")) m.frames_pending = ReadPendingRecords(frames["pending"], path);
     m.overview_vrts = j.value("overview_vrts", std::vector<std::string>{});
+    m.level0_vrt = j.value("level0_vrt", std::string());
     if (j.contains("display_range") && j["display_range"].is_array()) {
       m.display_lo = j["display_range"].at(0).get<double>();
       m.display_hi = j["display_range"].at(1).get<double>();
@@ -1694,17 +1696,17 @@ void VrtHead(const Manifest& manifest, int level, bool with_generation, const do
 
 // A source of `size` x `size` pixels (file `path`, block size `block`) whose top-left pixel
 // sits at (dx, dy) of a VRT of width x height: clipped to the VRT.
-void VrtSource(const std::string& path, int band, const std::string& type, int64_t size,
-               int64_t block, int64_t dx, int64_t dy, int64_t width, int64_t height,
+void VrtSource(const std::string& path, int band, const std::string& type, int64_t size_x,
+               int64_t size_y, int64_t block, int64_t dx, int64_t dy, int64_t width, int64_t height,
                std::ostringstream* xml) {
   const int64_t sx = std::max<int64_t>(0, -dx), sy = std::max<int64_t>(0, -dy);
-  const int64_t w = std::min(size - sx, width - std::max<int64_t>(0, dx));
-  const int64_t h = std::min(size - sy, height - std::max<int64_t>(0, dy));
+  const int64_t w = std::min(size_x - sx, width - std::max<int64_t>(0, dx));
+  const int64_t h = std::min(size_y - sy, height - std::max<int64_t>(0, dy));
   if (w <= 0 || h <= 0) return;
   *xml << "    <SimpleSource>\n      <SourceFilename relativeToVRT=\"1\">" << XmlEscape(path)
        << "</SourceFilename>\n"
        << "      <SourceBand>" << band << "</SourceBand>\n"
-       << "      <SourceProperties RasterXSize=\"" << size << "\" RasterYSize=\"" << size
+       << "      <SourceProperties RasterXSize=\"" << size_x << "\" RasterYSize=\"" << size_y
        << "\" DataType=\"" << type << "\" BlockXSize=\"" << block << "\" BlockYSize=\"" << block
        << "\"/>\n"
        << "      <SrcRect xOff=\"" << sx << "\" yOff=\"" << sy << "\" xSize=\"" << w
@@ -1753,7 +1755,8 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
       for (int64_t c = 0; c < kVrtBlockTiles; ++c) {
         if (!(rows[static_cast<size_t>(r)] & (0x8000u >> c))) continue;
         VrtSource(std::to_string(first.first + r) + "_" + std::to_string(first.second + c) + ".tif",
-                  band, type, t, std::min<int64_t>(kBlockSize, t), c * t, r * t, side, side, &xml);
+                  band, type, t, t, std::min<int64_t>(kBlockSize, t), c * t, r * t, side, side,
+                  &xml);
       }
     }
     xml << "  </VRTRasterBand>\n";
@@ -1762,37 +1765,83 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
   return xml.str();
 }
 
-std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
-                          const std::vector<std::string>& overview_paths) {
+namespace {
+
+// A level's size in its own pixels over `bounds` and the geotransform of its first pixel. Every
+// level spans the same ground as level 0 (GDAL requires it of overviews); T is a multiple of
+// 2^level, so these are whole pixels.
+struct LevelGeometry {
+  int64_t x0 = 0, y0 = 0, width = 0, height = 0;
+  double gt[6] = {};
+};
+
+LevelGeometry GeometryOf(const Manifest& manifest, int level, const TileBounds& bounds) {
   const int64_t t = manifest.tile_size;
   const int64_t scale = int64_t{1} << level;
-  // Every level spans the same ground as level 0 (GDAL requires it of overviews); T is a
-  // multiple of 2^level, so these are whole pixels.
-  const int64_t x0 = bounds.col0 * t / scale, y0 = bounds.row0 * t / scale;
-  const int64_t width = (bounds.col1 - bounds.col0) * t / scale;
-  const int64_t height = (bounds.row1 - bounds.row0) * t / scale;
-  const std::string type = GdalTypeNameOf(manifest.type);
-  const std::string prefix = level == 0 ? "tiles/0/" : "";  // Level VRTs sit beside their tiles.
-  const int64_t side = kVrtBlockTiles * t;
+  LevelGeometry g;
+  g.x0 = bounds.col0 * t / scale;
+  g.y0 = bounds.row0 * t / scale;
+  g.width = (bounds.col1 - bounds.col0) * t / scale;
+  g.height = (bounds.row1 - bounds.row0) * t / scale;
+  TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, 0, {bounds.row0, bounds.col0}, g.gt);
+  g.gt[1] *= static_cast<double>(scale);
+  g.gt[5] *= static_cast<double>(scale);
+  return g;
+}
 
-  double gt[6];
-  TileGeoTransform(manifest.georef.gsd_m, manifest.tile_size, 0, {bounds.row0, bounds.col0}, gt);
-  gt[1] *= static_cast<double>(scale);
-  gt[5] *= static_cast<double>(scale);
+void VrtOverviews(const std::vector<std::string>& overview_paths, int band,
+                  std::ostringstream* xml) {
+  for (const std::string& overview : overview_paths) {
+    *xml << "    <Overview><SourceFilename relativeToVRT=\"1\">" << XmlEscape(overview)
+         << "</SourceFilename><SourceBand>" << band << "</SourceBand></Overview>\n";
+  }
+}
+
+}  // namespace
+
+std::string LevelVrtPath(int level, const TileBounds& bounds) {
+  const std::string extent = "_r" + std::to_string(bounds.row0) + "_c" +
+                             std::to_string(bounds.col0) + "_" +
+                             std::to_string(bounds.row1 - bounds.row0) + "x" +
+                             std::to_string(bounds.col1 - bounds.col0) + ".vrt";
+  if (level == 0) return "tiles/level0" + extent;
+  return "tiles/" + std::to_string(level) + "/overview" + extent;
+}
+
+std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds) {
+  const LevelGeometry g = GeometryOf(manifest, level, bounds);
+  const std::string type = GdalTypeNameOf(manifest.type);
+  // Level 0's VRT sits in tiles/, the overviews' beside their tiles.
+  const std::string prefix = level == 0 ? "0/" : "";
+  const int64_t side = kVrtBlockTiles * manifest.tile_size;
   std::ostringstream xml;
-  VrtHead(manifest, level, level == 0, gt, width, height, &xml);
+  VrtHead(manifest, level, false, g.gt, g.width, g.height, &xml);
   const auto& blocks = manifest.levels[level].blocks();
   for (int band = 1; band <= 2; ++band) {
     VrtBandHead(band, type, &xml);
-    for (const std::string& overview : overview_paths) {
-      xml << "    <Overview><SourceFilename relativeToVRT=\"1\">" << XmlEscape(overview)
-          << "</SourceFilename><SourceBand>" << band << "</SourceBand></Overview>\n";
-    }
     for (const auto& [block, rows] : blocks) {
       // Block origin in this level's pixels, relative to the VRT; clipped to the VRT.
-      VrtSource(prefix + BlockVrtName(block), band, type, side, kVrtDefaultBlockSize,
-                block.second * side - x0, block.first * side - y0, width, height, &xml);
+      VrtSource(prefix + BlockVrtName(block), band, type, side, side, kVrtDefaultBlockSize,
+                block.second * side - g.x0, block.first * side - g.y0, g.width, g.height, &xml);
     }
+    xml << "  </VRTRasterBand>\n";
+  }
+  xml << "</VRTDataset>\n";
+  return xml.str();
+}
+
+std::string BuildMosaicVrt(const Manifest& manifest, const TileBounds& bounds,
+                           const std::string& level0_path,
+                           const std::vector<std::string>& overview_paths) {
+  const LevelGeometry g = GeometryOf(manifest, 0, bounds);
+  const std::string type = GdalTypeNameOf(manifest.type);
+  std::ostringstream xml;
+  VrtHead(manifest, 0, true, g.gt, g.width, g.height, &xml);
+  for (int band = 1; band <= 2; ++band) {
+    VrtBandHead(band, type, &xml);
+    VrtOverviews(overview_paths, band, &xml);
+    VrtSource(level0_path, band, type, g.width, g.height, kVrtDefaultBlockSize, 0, 0, g.width,
+              g.height, &xml);
     xml << "  </VRTRasterBand>\n";
   }
   xml << "</VRTDataset>\n";

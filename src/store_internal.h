@@ -205,6 +205,7 @@ struct Manifest {
   std::string application_json;               // Caller's state, verbatim JSON ("" = none).
   double display_lo = 0.0, display_hi = 0.0;  // Ramp range of the .qlr (hi <= lo: unknown).
   std::vector<std::string> overview_vrts;     // Relative paths, index l-1 for level l.
+  std::string level0_vrt;  // Relative path of the VRT over level 0's blocks ("" = none yet).
   // The extent the writer foresees for the whole flight (level-0 pixels col_min, row_min,
   // col_max, row_max, half-open), when it knows it (TileStore::SetPlannedBoundsPx).
   std::optional<std::array<int64_t, 4>> planned_bounds_px;
@@ -230,11 +231,21 @@ std::string BuildBlockVrt(const Manifest& manifest, int level, const BlockIndex&
 // ~16 times per doubling of its span instead of at nearly every publish; the padding is
 // transparent (alpha 0) and at most a sixteenth of the span on each side.
 TileBounds VrtBounds(const TileBounds& painted);
-// mosaic.vrt (level 0) and the per-level overview VRTs of a generation, as XML text: one
-// source per block VRT of the level. Only mosaic.vrt carries the generation (metadata item
-// IRMOSAIC_GENERATION): an overview VRT is rewritten only when its blocks or extent change.
-std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds,
-                          const std::vector<std::string>& overview_paths);
+// The VRT of one level over `bounds` (level-0 tiles) as XML text, for a file in tiles/ (level 0,
+// LevelVrtPath) or tiles/<level>/ (the overviews): one source per block VRT of the level. It
+// carries no generation, so it is rewritten only when its blocks or extent change.
+std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds);
+// Where the VRT of `level` over `bounds` lives, relative to the store:
+// tiles/level0_r<row0>_c<col0>_ <rows>x<cols>.vrt for level 0,
+// tiles/<level>/overview_r..._c..._<rows>x<cols>.vrt above. Named by the extent, so a reader
+// holding an older mosaic.vrt never meets a VRT of another geometry.
+std::string LevelVrtPath(int level, const TileBounds& bounds);
+// mosaic.vrt: the generation (metadata item IRMOSAIC_GENERATION), one source per band (level
+// 0's VRT, `level0_path`) and the overview VRTs: a few KiB however large the store, so the one
+// index file written at every publish does not grow with the flight.
+std::string BuildMosaicVrt(const Manifest& manifest, const TileBounds& bounds,
+                           const std::string& level0_path,
+                           const std::vector<std::string>& overview_paths);
 // The QGIS layer definition: the mosaic with a thermal ramp and auto-refresh, and the frames.
 // display_lo/hi: the ramp's initial range (e.g. the data's 2-98 % percentiles); QGIS then
 // follows what the canvas shows. `live`: the mosaic is the store itself through the IRMOSAIC

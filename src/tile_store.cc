@@ -753,35 +753,38 @@ void TileStore::Impl::WriteIndex(store::Manifest* next, int64_t generation) {
       written[block] = count;
     }
   }
-  for (int level = 1; level <= levels; ++level) {
+  level_vrts_written.resize(m.levels.size());
+  for (int level = 0; level <= levels; ++level) {
     // Named by the ground it spans, not by generation: a later generation with the same extent
     // replaces the file (more sources, same geometry), so a reader holding an older mosaic.vrt
-    // that opens its overviews late still finds a file of the geometry it expects.
-    const std::string relative = "tiles/" + std::to_string(level) + "/overview_r" +
-                                 std::to_string(bounds.row0) + "_c" + std::to_string(bounds.col0) +
-                                 "_" + std::to_string(bounds.row1 - bounds.row0) + "x" +
-                                 std::to_string(bounds.col1 - bounds.col0) + ".vrt";
-    m.overview_vrts.push_back(relative);
+    // that opens it late (GDAL opens sources and overviews at the first read that needs them)
+    // still finds a file of the geometry it expects.
+    const std::string relative = store::LevelVrtPath(level, bounds);
+    if (level == 0) {
+      m.level0_vrt = relative;
+    } else {
+      m.overview_vrts.push_back(relative);
+    }
     // Its text depends on the extent (in its name) and the level's blocks only: rewritten when
     // these changed since this process last wrote it, else only its time is renewed (stale
-    // overview VRTs go an hour after they were last current: CleanStaleFiles).
+    // level VRTs go an hour after they were last current: CleanStaleFiles).
     std::vector<store::BlockIndex> blocks;
     blocks.reserve(m.levels[level].blocks().size());
     for (const auto& entry : m.levels[level].blocks()) blocks.push_back(entry.first);
-    level_vrts_written.resize(m.levels.size());
     LevelVrtState& last = level_vrts_written[level];
     if (last.relative == relative && last.blocks == blocks) {
       std::error_code error;
       fs::last_write_time(root / relative, fs::file_time_type::clock::now(), error);
       if (!error) continue;  // Else (the file is gone) it is written again.
     }
-    const std::string xml = store::BuildLevelVrt(m, level, bounds, {});
+    const std::string xml = store::BuildLevelVrt(m, level, bounds);
     store::WriteFileAtomic(root / relative, xml, options.durable);
     index_bytes += static_cast<int64_t>(xml.size());
     last.relative = relative;
     last.blocks = std::move(blocks);
   }
-  const std::string vrt = store::BuildLevelVrt(m, 0, bounds, m.overview_vrts);
+  // mosaic.vrt, the one VRT written at every publish (it carries the generation): a few KiB.
+  const std::string vrt = store::BuildMosaicVrt(m, bounds, m.level0_vrt, m.overview_vrts);
   store::WriteFileAtomic(root / "mosaic.vrt", vrt, options.durable);
   const std::string json = store::ManifestToJson(m);
   store::WriteFileAtomic(root / "manifest.json", json, options.durable);
@@ -795,11 +798,21 @@ void TileStore::Impl::CleanStaleFiles(const store::Manifest& current) {
   // for them; they go after an hour (the mosaic outgrows an extent a few hundred times per
   // flight, so few files wait). Each call lists every overview tile's folder, so PublishOnce
   // calls it once a minute (kCleanInterval) and when closing, not with every overview update.
-  const std::set<std::string> in_use(current.overview_vrts.begin(), current.overview_vrts.end());
+  std::set<std::string> in_use(current.overview_vrts.begin(), current.overview_vrts.end());
+  in_use.insert(current.level0_vrt);
   const auto now = fs::file_time_type::clock::now();
   std::error_code error;
   for (const auto& dir : fs::directory_iterator(root / "tiles", error)) {
-    if (dir.path().filename() == "0") continue;  // Level 0 holds tiles only (and most of them).
+    const std::string top = dir.path().filename().string();
+    if (top.rfind("level0_", 0) == 0 && top.size() > 4 &&
+        top.compare(top.size() - 4, 4, ".vrt") == 0) {  // Level 0's VRTs, in tiles/ itself.
+      const auto modified = fs::last_write_time(dir.path(), error);
+      if (!error && !in_use.count("tiles/" + top) && now - modified > std::chrono::hours(1)) {
+        fs::remove(dir.path(), error);
+      }
+      continue;
+    }
+    if (top == "0" || !dir.is_directory(error)) continue;  // Level 0 holds tiles only.
     for (const auto& entry : fs::directory_iterator(dir.path(), error)) {
       const std::string name = entry.path().filename().string();
       if (name.rfind("overview_", 0) != 0 || name.size() < 4 ||

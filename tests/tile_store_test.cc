@@ -95,6 +95,18 @@ struct Raster {
   int64_t generation = -1;
 };
 
+// The sources a VRT file lists (<SimpleSource> elements).
+size_t VrtSources(const fs::path& path) {
+  std::ifstream in(path);
+  const std::string xml((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  size_t n = 0;
+  for (size_t at = xml.find("<SimpleSource>"); at != std::string::npos;
+       at = xml.find("<SimpleSource>", at + 1)) {
+    ++n;
+  }
+  return n;
+}
+
 // Reads mosaic.vrt (or any 2-band raster) whole through GDAL, optionally at an overview.
 Raster ReadThroughGdal(const fs::path& path, int overview = 0) {
   Raster r;
@@ -261,10 +273,11 @@ TEST(TileStoreTest, VrtExtentGrowsInStepsOfASixteenthOfTheSpan) {
   EXPECT_LT(changes, 31 + 2 * 16 * 8);
 }
 
-// The overview VRTs are rewritten only when their extent or their level's blocks change; a
-// publish that adds tiles to existing blocks rewrites mosaic.vrt (its generation) and the
-// blocks' own VRTs only. GDAL reads the new tiles through the unchanged overview VRTs, and the
-// padded extent keeps every tile at its ground position.
+// The level VRTs (level 0's and the overviews') are rewritten only when their extent or their
+// level's blocks change; a publish that adds tiles to existing blocks rewrites mosaic.vrt (its
+// generation: a few KiB, two sources) and the blocks' own VRTs only. GDAL reads the new tiles
+// through the unchanged level VRTs, and the padded extent keeps every tile at its ground
+// position.
 TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
   const fs::path dir = FreshDir("overview_rewrites") / "s.irmosaic";
   constexpr int kTile = 64;
@@ -285,11 +298,22 @@ TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
     struct stat st {};
     return ::stat((dir / relative).c_str(), &st) == 0 ? st.st_ino : ino_t{0};
   };
+  const auto level0 = [&] {
+    return nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["level0_vrt"]
+        .get<std::string>();
+  };
+  const auto sources = [&](const std::string& relative) { return VrtSources(dir / relative); };
   const std::vector<std::string> first = names();
   ASSERT_GE(first.size(), 2u);
   std::vector<ino_t> inodes;
   for (const std::string& vrt : first) inodes.push_back(inode(vrt));
   const ino_t mosaic_inode = inode("mosaic.vrt");
+  const std::string first_level0 = level0();
+  ASSERT_TRUE(fs::exists(dir / first_level0)) << first_level0;
+  const ino_t level0_inode = inode(first_level0);
+  EXPECT_EQ(sources("mosaic.vrt"), 2u);  // Level 0's VRT, in two bands.
+  EXPECT_EQ(sources(first_level0), 4u);  // Blocks (0, 0) and (2, 2), two bands.
+  EXPECT_LT(fs::file_size(dir / "mosaic.vrt"), 8192u);
 
   GdalErrorCount errors;
   Raster r = ReadThroughGdal(dir / "mosaic.vrt");
@@ -310,6 +334,8 @@ TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
     EXPECT_EQ(inode(first[l]), inodes[l]) << "level " << l + 1 << " was rewritten";
   }
   EXPECT_NE(inode("mosaic.vrt"), mosaic_inode);
+  EXPECT_EQ(level0(), first_level0);
+  EXPECT_EQ(inode(first_level0), level0_inode) << "level 0's VRT was rewritten";
   r = ReadThroughGdal(dir / "mosaic.vrt", 1);
   ASSERT_FALSE(r.data.empty()) << errors.last;
   EXPECT_EQ(r.generation, 2);
@@ -321,6 +347,9 @@ TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
   store->WaitPublished(store->RequestPublish());
   EXPECT_EQ(names(), first);
   EXPECT_NE(inode(first[0]), inodes[0]);
+  EXPECT_EQ(level0(), first_level0);
+  EXPECT_NE(inode(first_level0), level0_inode);
+  EXPECT_EQ(sources(first_level0), 6u);
   r = ReadThroughGdal(dir / "mosaic.vrt", 1);
   ASSERT_FALSE(r.data.empty()) << errors.last;
   EXPECT_EQ(cv::countNonZero(r.data == 40), 8 * 8);
@@ -336,7 +365,9 @@ TEST(TileStoreTest, OverviewVrtsAreRewrittenOnlyWhenTheirBlocksOrExtentChange) {
   const std::vector<std::string> wider = names();
   ASSERT_EQ(wider.size(), first.size());
   EXPECT_NE(wider[0], first[0]);
+  EXPECT_NE(level0(), first_level0);
   for (const std::string& vrt : first) EXPECT_TRUE(fs::exists(dir / vrt)) << vrt;
+  EXPECT_TRUE(fs::exists(dir / first_level0)) << first_level0;
   r = ReadThroughGdal(dir / "mosaic.vrt");
   ASSERT_FALSE(r.data.empty()) << errors.last;
   EXPECT_EQ(r.data.cols, 44 * kTile);
@@ -446,14 +477,10 @@ TEST(TileStoreTest, IndexWrittenPerPublishIsBoundedByTheChangeNotTheStore) {
   EXPECT_LT(published, changed);
   // A flat VRT would have listed every tile of every level in two bands.
   EXPECT_LT(published, static_cast<int64_t>(tiles_all_levels) * 2 * source_bytes / 3);
-  std::ifstream vrt_in(dir / "mosaic.vrt");
-  const std::string vrt((std::istreambuf_iterator<char>(vrt_in)), std::istreambuf_iterator<char>());
-  size_t sources = 0;
-  for (size_t at = vrt.find("<SimpleSource>"); at != std::string::npos;
-       at = vrt.find("<SimpleSource>", at + 1)) {
-    ++sources;
-  }
-  EXPECT_EQ(sources, 2u * 10u);  // 9 + 1 blocks, two bands.
+  // Level 0's VRT lists the blocks; mosaic.vrt lists it.
+  const std::string level0 = nlohmann::json::parse(manifest)["level0_vrt"].get<std::string>();
+  EXPECT_EQ(VrtSources(dir / level0), 2u * 10u);  // 9 + 1 blocks, two bands.
+  EXPECT_EQ(VrtSources(dir / "mosaic.vrt"), 2u);
 
   // GDAL reads both new tiles through the nested VRTs, with every earlier strip intact.
   GdalErrorCount errors;
@@ -1558,7 +1585,8 @@ TEST(TileStoreTest, StaleOverviewVrtsGoAfterAnHourTheCurrentOnesStay) {
   options.pixel_type = PixelType::kByte;
   auto store = TileStore::Open(options, Georef());
   const auto make_vrt = [&](const std::string& name, std::chrono::minutes age) {
-    const fs::path path = dir / "tiles/1" / name;
+    // Overviews' in tiles/1, level 0's in tiles/ itself.
+    const fs::path path = dir / (name.rfind("level0_", 0) == 0 ? "tiles" : "tiles/1") / name;
     fs::create_directories(path.parent_path());
     std::ofstream(path) << "<VRTDataset/>\n";
     fs::last_write_time(path, fs::file_time_type::clock::now() - age);
@@ -1566,13 +1594,18 @@ TEST(TileStoreTest, StaleOverviewVrtsGoAfterAnHourTheCurrentOnesStay) {
   };
   const fs::path old_one = make_vrt("overview_r0_c0_1x1.vrt", std::chrono::minutes(90));
   const fs::path recent = make_vrt("overview_r0_c0_1x2.vrt", std::chrono::minutes(10));
+  const fs::path old_level0 = make_vrt("level0_r0_c0_1x1.vrt", std::chrono::minutes(90));
+  const fs::path recent_level0 = make_vrt("level0_r0_c0_1x2.vrt", std::chrono::minutes(10));
   PaintSquare(store.get(), {0, 0}, 192, 100);  // 3 x 3 tiles: two overview levels.
   store->WaitPublished(store->RequestPublish());
   EXPECT_FALSE(fs::exists(old_one)) << "a VRT unused for an hour stayed";
   EXPECT_TRUE(fs::exists(recent)) << "a VRT a reader may still open went";
-  const std::vector<std::string> current =
-      nlohmann::json::parse(std::ifstream(dir / "manifest.json"))["overview_vrts"];
+  EXPECT_FALSE(fs::exists(old_level0)) << "a level-0 VRT unused for an hour stayed";
+  EXPECT_TRUE(fs::exists(recent_level0)) << "a level-0 VRT a reader may still open went";
+  const nlohmann::json manifest = nlohmann::json::parse(std::ifstream(dir / "manifest.json"));
+  std::vector<std::string> current = manifest["overview_vrts"];
   ASSERT_FALSE(current.empty());
+  current.push_back(manifest["level0_vrt"]);
   for (const std::string& vrt : current) {
     EXPECT_TRUE(fs::exists(dir / vrt)) << vrt;
     // Stale by age, but named by the manifest: it stays.
