@@ -1694,7 +1694,7 @@ void VrtHead(const Manifest& manifest, int level, bool with_generation, const do
   *xml << "    <MDI key=\"IRMOSAIC_LEVEL\">" << level << "</MDI>\n  </Metadata>\n";
 }
 
-// A source of `size` x `size` pixels (file `path`, block size `block`) whose top-left pixel
+// A source of `size_x` x `size_y` pixels (file `path`, block size `block`) whose top-left pixel
 // sits at (dx, dy) of a VRT of width x height: clipped to the VRT.
 void VrtSource(const std::string& path, int band, const std::string& type, int64_t size_x,
                int64_t size_y, int64_t block, int64_t dx, int64_t dy, int64_t width, int64_t height,

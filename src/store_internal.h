@@ -235,9 +235,9 @@ TileBounds VrtBounds(const TileBounds& painted);
 // LevelVrtPath) or tiles/<level>/ (the overviews): one source per block VRT of the level. It
 // carries no generation, so it is rewritten only when its blocks or extent change.
 std::string BuildLevelVrt(const Manifest& manifest, int level, const TileBounds& bounds);
-// Where the VRT of `level` over `bounds` lives, relative to the store:
-// tiles/level0_r<row0>_c<col0>_ <rows>x<cols>.vrt for level 0,
-// tiles/<level>/overview_r..._c..._<rows>x<cols>.vrt above. Named by the extent, so a reader
+// Where the VRT of `level` over `bounds` lives, relative to the store: for level 0
+// tiles/level0_r<row0>_c<col0>_<rows>x<cols>.vrt, above it
+// tiles/<level>/overview_r<row0>_c<col0>_<rows>x<cols>.vrt. Named by the extent, so a reader
 // holding an older mosaic.vrt never meets a VRT of another geometry.
 std::string LevelVrtPath(int level, const TileBounds& bounds);
 // mosaic.vrt: the generation (metadata item IRMOSAIC_GENERATION), one source per band (level
