@@ -6,8 +6,8 @@
 //                [--no-optimize] [--store DIR] [--json FILE] [--timeout S]
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX]
 //                [--settled-rerender-threshold PX] [--settled-rerenders] [--window N]
-//                [--short-window N] [--full-every N] [--solve-every N] [--registration-threads N]
-//                [--max-neighbours N]
+//                [--short-window N] [--full-every N] [--solve-every N] [--solve-iterations N]
+//                [--registration-threads N] [--max-neighbours N]
 //                [--ground-cache-mb N]
 //                [--lsm-level N] [--seed N] [--first N] [--bit-depth 8|16]
 //                [--malloc-info DIR] [--exit-before-finish]
@@ -123,6 +123,7 @@ struct Tuning {
   int solve_every_frames = -1;
   int short_window_frames = -1;  // FusionOptions::short_window_frames (-1: the default).
   int full_window_every = -1;    // FusionOptions::full_window_every (-1: the default).
+  int solve_iterations = -1;     // FusionOptions::solve_iterations (-1: the default).
   int registration_threads = -1;
   int max_neighbours = -1;  // FusionOptions::max_neighbours (-1: the default).
   int optimizer_nice = -1;
@@ -376,6 +377,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.fusion.short_window_frames = g_tuning.short_window_frames;
   }
   if (g_tuning.full_window_every > 0) options.fusion.full_window_every = g_tuning.full_window_every;
+  if (g_tuning.solve_iterations > 0) options.fusion.solve_iterations = g_tuning.solve_iterations;
   if (g_tuning.solve_every_frames > 0) {
     options.fusion.solve_every_frames = g_tuning.solve_every_frames;
   }
@@ -725,6 +727,9 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"optimizer_mean_solve_ms",
              s.fusion.solves ? s.fusion.total_solve_ms / s.fusion.solves : 0.0},
             {"optimizer_max_solve_ms", s.fusion.max_solve_ms},
+            {"optimizer_mean_solve_cpu_ms",
+             s.fusion.solves ? s.fusion.total_solve_cpu_ms / s.fusion.solves : 0.0},
+            {"optimizer_cpu_ms_per_frame", s.fusion.total_solve_cpu_ms / config.frames},
             {"rerendered_frames", s.fusion.rerendered_frames},
             {"deferred_rerenders", s.fusion.deferred_rerenders},
             {"radiometric_rerenders", s.fusion.radiometric_rerenders},
@@ -770,6 +775,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"solve_every_frames", options.fusion.solve_every_frames},
             {"short_window_frames", options.fusion.short_window_frames},
             {"full_window_every", options.fusion.full_window_every},
+            {"solve_iterations", options.fusion.solve_iterations},
             {"registration_threads", options.registration_threads},
             {"heap_trim_interval_frames", options.heap_trim_interval_frames},
             {"tune_heap", options.tune_heap},
@@ -1082,6 +1088,8 @@ int main(int argc, char** argv) {
       g_tuning.short_window_frames = std::stoi(value());
     } else if (a == "--full-every") {
       g_tuning.full_window_every = std::stoi(value());
+    } else if (a == "--solve-iterations") {
+      g_tuning.solve_iterations = std::stoi(value());
     } else if (a == "--solve-every") {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
@@ -1152,6 +1160,7 @@ int main(int argc, char** argv) {
              "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
              "[--settled-rerender-threshold PX] [--settled-rerenders] "
              "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
+             "[--solve-iterations N] "
              "[--registration-threads N] [--max-neighbours N] [--lsm-level N] "
              "[--keypoints-at-level 0|1] "
              "[--max-pair-sigma PX] "
@@ -1266,9 +1275,12 @@ int main(int argc, char** argv) {
               << f["rerendered_frames"].get<int64_t>() << " (deferred "
               << f["deferred_rerenders"].get<int64_t>() << "), optimizer " << f["optimizer_solves"]
               << " solves (" << f["optimizer_full_solves"] << " over the whole window; mean "
-              << Fixed(f["optimizer_mean_solve_ms"], 0)
-              << " ms); on disk behind the solution: seams " << Fixed(f["mean_seam_lag_px"], 3)
-              << " px, frames " << Fixed(f["mean_painted_lag_px"], 3)
+              << Fixed(f["optimizer_mean_solve_ms"], 0) << " ms, CPU "
+              << Fixed(f["optimizer_mean_solve_cpu_ms"], 0) << " ms; "
+              << Fixed(f["optimizer_cpu_ms_per_frame"], 1)
+              << " CPU ms/frame); on disk behind the solution: seams "
+              << Fixed(f["mean_seam_lag_px"], 3) << " px, frames "
+              << Fixed(f["mean_painted_lag_px"], 3)
               << " px (RMS, mean over solves)\nplacement vs truth mean "
               << Fixed(f["placement_mean_px"], 3) << " px, p95 " << Fixed(f["placement_p95_px"], 3)
               << ", max " << Fixed(f["placement_max_px"], 3) << ", frames over 5 px "

@@ -4,6 +4,7 @@
 // (true tie points + Gaussian noise), so the figures isolate the fusion.
 // Usage: fusion_bench [--frames N] [--rate FPS] [--json FILE] [--plot FILE.png] [--render 0|1]
 //   [--precision 0|1] [--solver NAME] [--sparse NAME] [--window N] [--solve-every N]
+//   [--short-window N] [--full-every N] [--iterations N]
 //   [--max-ties N] [--neighbours N] [--tie-noise PX] [--tie-sigma PX] [--seed N]
 //   [--skip-without 0|1]
 // Latency is per Push(): wall time and the calling thread's CPU time (less inflated by a
@@ -122,6 +123,7 @@ int main(int argc, char** argv) {
     if (a == "--short-window") options.short_window_frames = std::stoi(argv[i + 1]);
     if (a == "--full-every") options.full_window_every = std::stoi(argv[i + 1]);
     if (a == "--solve-every") options.solve_every_frames = std::stoi(argv[i + 1]);
+    if (a == "--iterations") options.solve_iterations = std::stoi(argv[i + 1]);
     if (a == "--max-ties") options.max_ties_per_pair = std::stoi(argv[i + 1]);
     if (a == "--skip-without") skip_without = std::stoi(argv[i + 1]) != 0;
   }

@@ -300,6 +300,7 @@ PYBIND11_MODULE(irmosaic, m) {
       .def_readwrite("solve_every_frames", &FusionOptions::solve_every_frames)
       .def_readwrite("short_window_frames", &FusionOptions::short_window_frames)
       .def_readwrite("full_window_every", &FusionOptions::full_window_every)
+      .def_readwrite("solve_iterations", &FusionOptions::solve_iterations)
       .def_readwrite("max_neighbours", &FusionOptions::max_neighbours)
       .def_readwrite("max_ties_per_pair", &FusionOptions::max_ties_per_pair)
       .def_readwrite("min_overlap_fraction", &FusionOptions::min_overlap_fraction)

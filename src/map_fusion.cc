@@ -91,6 +91,7 @@ bool FusionOptions::IsValid(std::string* error) const {
   if (solve_every_frames < 1) return fail("solve_every_frames must be at least 1");
   if (short_window_frames < 0) return fail("short_window_frames must be >= 0 (0: off)");
   if (full_window_every < 1) return fail("full_window_every must be at least 1");
+  if (solve_iterations < 1) return fail("solve_iterations must be at least 1");
   if (optimizer_nice < 0 || optimizer_nice > 19) {
     return fail("optimizer_nice must be in 0..19");
   }
@@ -1064,7 +1065,7 @@ class MapFusion::Impl {
     ceres::StringToLinearSolverType(options_.linear_solver, &solver.linear_solver_type);
     ceres::StringToSparseLinearAlgebraLibraryType(options_.sparse_library,
                                                   &solver.sparse_linear_algebra_library_type);
-    solver.max_num_iterations = final_solve ? 20 : 6;
+    solver.max_num_iterations = final_solve ? 20 : options_.solve_iterations;
     solver.num_threads = 1;
     solver.logging_type = ceres::SILENT;
     // The POS priors are weak next to the ties, so the mode they fix (where the whole window

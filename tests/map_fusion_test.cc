@@ -182,6 +182,32 @@ TEST(MapFusionTest, ShortSolvesLeaveThePlacementsAsFullOnes) {
   EXPECT_LE(Max(part.seam), 1.0);
 }
 
+// FusionOptions::solve_iterations: each background solve starts from the placements the last
+// one left and solves come every few frames, so 3 Levenberg-Marquardt iterations per stage
+// reach what 6 reach (the final solve takes 20 in both).
+TEST(MapFusionTest, ThreeIterationsPerSolveReachThePlacementsOfSix) {
+  const Sweep s = MakeSweep(192, 6, 2.0, 0.3, 5);
+  FusionOptions options;
+  options.window_frames = 48;
+  options.solve_every_frames = 8;
+  options.solve_iterations = 6;
+  const RunResult six = RunFusion(s, options, IdealRegistrar(s, 0.15, 9), 50.0, true);
+  options.solve_iterations = 3;
+  const RunResult three = RunFusion(s, options, IdealRegistrar(s, 0.15, 9), 50.0, true);
+  std::printf(
+      "6 iterations per stage: mean %.3f max %.3f px, seams max %.3f px, %lld solves, %.0f CPU "
+      "ms; 3: mean %.3f max %.3f px, seams max %.3f px, %lld solves, %.0f CPU ms\n",
+      Mean(six.rmse), Max(six.rmse), Max(six.seam), static_cast<long long>(six.stats.solves),
+      six.stats.total_solve_cpu_ms, Mean(three.rmse), Max(three.rmse), Max(three.seam),
+      static_cast<long long>(three.stats.solves), three.stats.total_solve_cpu_ms);
+  EXPECT_EQ(three.stats.solves, six.stats.solves);
+  // Against the truth (POS ~18 px; a 48-frame window leaves ~2 px), within the bounds of
+  // ShortSolvesLeaveThePlacementsAsFullOnes.
+  EXPECT_LE(Mean(three.rmse), 1.05 * Mean(six.rmse));
+  EXPECT_LE(Max(three.rmse), 1.15 * Max(six.rmse));
+  EXPECT_LE(Max(three.seam), 1.0);
+}
+
 TEST(MapFusionTest, SeamLagOnDiskFollowsTheRerenderBudget) {
   const Sweep s = MakeSweep(240, 6, 2.0, 0.3, 3);
   FusionOptions options;
@@ -1109,6 +1135,10 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.full_window_every = 0;
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("full_window_every"), std::string::npos);
+  options = FusionOptions();
+  options.solve_iterations = 0;
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("solve_iterations"), std::string::npos);
   options = FusionOptions();
   options.pair_robust_scale_px = 0.0;
   EXPECT_FALSE(options.IsValid(&error));

@@ -107,6 +107,13 @@ struct FusionOptions {
   // frames (docs/benchmarks.md, "Session 17").
   int short_window_frames = 100;
   int full_window_every = 4;
+  // Levenberg-Marquardt iterations per stage of a background solve (a plain least-squares
+  // stage, then one under the robust losses); the final solve takes 20 per stage over 4
+  // stages. Each solve starts where the last one left its frames and solves come every few
+  // frames, so 3 reach the placements 6 did (ideal registrar, 2000 frames, 3 seeds: mean
+  // 0.798 / 0.913 / 0.883 px with 6, 0.789 / 0.906 / 0.873 with 3) for 35-40 % less CPU per
+  // solve; 2 lost accuracy in one seed (docs/fusion.md, "Iterations per solve").
+  int solve_iterations = 3;
   // The optimizer thread's nice increment (0..19; 0: the caller's priority). Above 0 its solves
   // and re-renders take the CPU that placing new frames (the caller) and the store's writer
   // (nice 5) leave, instead of an equal share: at 25 fps on 2 cores new frames reach the disk
