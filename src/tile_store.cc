@@ -126,6 +126,14 @@ double ThreadCpuMs() {
   return 1e3 * static_cast<double>(ts.tv_sec) + 1e-6 * static_cast<double>(ts.tv_nsec);
 }
 
+// Of the calling thread's CPU time, the part spent in the kernel (system time), ms.
+double ThreadSystemCpuMs() {
+  rusage usage{};
+  if (getrusage(RUSAGE_THREAD, &usage) != 0) return 0.0;
+  return 1e3 * static_cast<double>(usage.ru_stime.tv_sec) +
+         1e-3 * static_cast<double>(usage.ru_stime.tv_usec);
+}
+
 // Time the calling thread has waited for a CPU while runnable, ms (Linux: the second field of
 // /proc/thread-self/schedstat); 0 where the kernel does not report it. For PublishReport.
 double ThreadRunQueueMs() {
@@ -147,11 +155,13 @@ double MsSince(Clock::time_point start) {
 struct TimedWork {
   double busy_ms = 0.0;
   double cpu_ms = 0.0;
+  double system_cpu_ms = 0.0;  // Of cpu_ms, in the kernel.
   std::string error;
 };
 TimedWork RunTimed(const char* what, const std::function<void()>& work) {
   const Clock::time_point start = Clock::now();
   const double cpu_start_ms = ThreadCpuMs();
+  const double system_start_ms = ThreadSystemCpuMs();
   TimedWork out;
   try {
     work();
@@ -162,6 +172,7 @@ TimedWork RunTimed(const char* what, const std::function<void()>& work) {
   }
   out.busy_ms = MsSince(start);
   out.cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  out.system_cpu_ms = ThreadSystemCpuMs() - system_start_ms;
   return out;
 }
 
@@ -965,6 +976,7 @@ void TileStore::Impl::OverviewSlice(std::unique_lock<std::mutex>& lock) {
   slices_ms += work.busy_ms;
   stats.writer_busy_ms += work.busy_ms;
   stats.writer_cpu_ms += work.cpu_ms;
+  stats.writer_system_cpu_ms += work.system_cpu_ms;
   stats.tiles_written += tiles;
   stats.blocks_copied = store::BlocksCopied();
   stats.blocks_encoded = store::BlocksEncoded();
@@ -1055,6 +1067,7 @@ void TileStore::Impl::RefreshSlice(std::unique_lock<std::mutex>& lock) {
   replaced_since_publish = replaced_since_publish || tiles > 0;
   stats.writer_busy_ms += work.busy_ms;
   stats.writer_cpu_ms += work.cpu_ms;
+  stats.writer_system_cpu_ms += work.system_cpu_ms;
   stats.tiles_written += tiles;
   stats.blocks_copied = store::BlocksCopied();
   stats.blocks_encoded = store::BlocksEncoded();
@@ -1177,6 +1190,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
 
   const Clock::time_point start = Clock::now();
   const double cpu_start_ms = ThreadCpuMs();
+  const double system_start_ms = ThreadSystemCpuMs();
   int64_t bytes = 0, tiles_written = 0, overview_written = 0;
   std::string error;
   std::vector<TileIndex> snapshot;
@@ -1283,6 +1297,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   }
   const double busy_ms = MsSince(start);
   const double cpu_ms = ThreadCpuMs() - cpu_start_ms;
+  const double system_cpu_ms = ThreadSystemCpuMs() - system_start_ms;
   // The report goes out before the generation counts as published, so that a caller woken by
   // WaitPublished has its report; the files are on disk already. `finished` is the time
   // PublishedAt gives (latencies are counted to it, not to the end of the callback).
@@ -1303,6 +1318,7 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   lock.lock();
   stats.writer_busy_ms += busy_ms;
   stats.writer_cpu_ms += cpu_ms;
+  stats.writer_system_cpu_ms += system_cpu_ms;
   stats.overview_owed_tiles = overview_owed.size() + CycleOwedCount();
   stats.overviews_pending = cycle_levels >= 0 || !overview_owed.empty();
   stats.index_ms_total = index_ms;

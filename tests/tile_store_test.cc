@@ -1822,6 +1822,20 @@ TEST(TileStoreTest, ARefreshedTileWaitsForItsQuietPublishesAndIsWrittenOnce) {
   options.pixel_type = PixelType::kByte;
   options.refresh_slice_tiles = 1;
   options.refresh_quiet_publishes = 3;
+  // Each publish reports the refresh slices that ran since the one before: what ran between
+  // two publishes, known without racing the writer (a slice may run right after a publish,
+  // before or after this thread looks at the stats).
+  std::mutex mu;
+  std::map<int64_t, int> slices_before;  // generation -> refresh slices since the previous one
+  options.on_publish = [&](const PublishReport& report) {
+    std::lock_guard<std::mutex> lock(mu);
+    slices_before[report.generation] = report.refresh_slices;
+  };
+  const auto slices_before_generation = [&](int64_t generation) {
+    std::lock_guard<std::mutex> lock(mu);
+    const auto it = slices_before.find(generation);
+    return it == slices_before.end() ? -1 : it->second;
+  };
   auto store = TileStore::Open(options, Georef());
   PaintSquare(store.get(), {0, 0}, kTile, 1);
   store->WaitPublished(store->RequestPublish());
@@ -1835,17 +1849,28 @@ TEST(TileStoreTest, ARefreshedTileWaitsForItsQuietPublishesAndIsWrittenOnce) {
     EXPECT_EQ(store->stats().refresh_waiting, 1u) << round;
   }
   // Unpainted: last painted before the fourth round's publish, it is ready after the third
-  // publish from there. Each check below sees the slices that followed the publish before.
+  // publish from there (counting that one). No slice runs after the fourth round's publish or
+  // after the first quiet one: the publishes after them report none.
+  int64_t quiet_generation = 0;
   for (int quiet = 1; quiet < 3; ++quiet) {
-    store->WaitPublished(store->RequestPublish());
-    EXPECT_EQ(store->stats().refresh_tiles_written, before.refresh_tiles_written) << quiet;
+    quiet_generation = store->RequestPublish();
+    store->WaitPublished(quiet_generation);
+    EXPECT_EQ(slices_before_generation(quiet_generation), 0) << quiet;
   }
-  // Written once, with the last values, by the slice after the third.
-  const TileStore::Stats after = WaitForRefreshWrites(store.get(), before, 1);
+  // Written once, with the last values, by the slice after the second quiet publish. Slices
+  // take their turn before the next publish, so a publish of new content (another tile)
+  // reports it.
+  PaintSquare(store.get(), {0, 2 * kTile}, kTile, 50);
+  const int64_t next = store->RequestPublish();
+  ASSERT_GT(next, quiet_generation);
+  store->WaitPublished(next);
+  EXPECT_EQ(slices_before_generation(next), 1);
+  const TileStore::Stats after = store->stats();
   EXPECT_EQ(after.refresh_tiles_written - before.refresh_tiles_written, 1);
   EXPECT_EQ(after.refresh_waiting, 0u);
+  // Level 0: the refreshed tile once, and the new one.
   EXPECT_EQ(after.tiles_written - after.overview_tiles_written,
-            before.tiles_written - before.overview_tiles_written + 1);
+            before.tiles_written - before.overview_tiles_written + 2);
   ExpectTileHolds(ReadThroughGdal(dir / "mosaic.vrt"), kTile, 0, 0, 13);
   store->Close();
 }

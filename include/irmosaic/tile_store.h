@@ -264,8 +264,13 @@ class IRMOSAIC_EXPORT TileStore {
     // memory), and the Paint calls that waited.
     double paint_wait_ms_total = 0.0;
     int64_t paint_waits = 0;
-    double writer_busy_ms = 0.0;    // Time the writer thread spent working.
-    double writer_cpu_ms = 0.0;     // CPU time of that work (the load does not inflate it).
+    double writer_busy_ms = 0.0;  // Time the writer thread spent working.
+    double writer_cpu_ms = 0.0;   // CPU time of that work (the load does not inflate it).
+    // Of it, the kernel's (system time: creating, writing and renaming files). It depends on
+    // the file system's state as much as on the work: on ext4 without a journal, creating a
+    // file scans the inodes freed in the last seconds (docs/benchmarks.md, "Session 37"), so
+    // a run right after a large store was deleted pays more.
+    double writer_system_cpu_ms = 0.0;
     double index_ms_total = 0.0;    // Of the writer's time: writing the index (VRTs, manifest).
     int64_t index_bytes_total = 0;  // Bytes of index files written.
     double publish_p50_ms = 0.0;    // RequestPublish() to published, median.
