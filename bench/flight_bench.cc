@@ -450,7 +450,18 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     std::lock_guard<std::mutex> lock(reports_mu);
     publish_reports.push_back(report);
   };
-  std::filesystem::remove_all(config.store);
+  if (std::filesystem::remove_all(config.store) > 0) {
+    // A store of the last run just deleted makes this one's files dearer to create: on ext4
+    // without a journal (this machine's disk) a new file skips the inodes freed in the last
+    // seconds, checked one by one, and a store frees thousands. The writer's kernel time, 1500
+    // paced frames: 3.5 ms per frame on a quiet disk, 7.4-7.9 right after deleting such a
+    // store, 6.4 after a sync and 6 s, 4.4 after a sync and 60 s (docs/benchmarks.md,
+    // "Session 39").
+    std::cerr << "flight_bench: removed the previous store " << config.store
+              << "; syncing and waiting 60 s so that its freed inodes do not slow this run\n";
+    sync();
+    std::this_thread::sleep_for(std::chrono::seconds(60));
+  }
   irmosaic::Placements truth;
   truth.origin_lat_deg = sim.frame().origin_lat_deg();
   truth.origin_lon_deg = sim.frame().origin_lon_deg();
