@@ -1,4 +1,6 @@
-// Orthorectification cost per 640x512 16-bit and 8-bit frame on one core.
+// Orthorectification cost per 640x512 16-bit and 8-bit frame on one core, and of the seam
+// weights a render computes over the orthoimage (src/feather_weight.h: the scalar reference over
+// whole rows, the SSE2 and AVX2 paths over each row's span).
 // Usage: ortho_bench [--json FILE] [--frames N]
 #include <time.h>
 
@@ -9,6 +11,8 @@
 #include <opencv2/core.hpp>
 #include <string>
 
+#include "../src/feather_weight.h"
+#include "../src/simd_dispatch.h"
 #include "irmosaic/frame_geometry.h"
 #include "irmosaic/orthorectify.h"
 
@@ -95,6 +99,57 @@ int main(int argc, char** argv) {
                         {"ms_per_frame", ms},
                         {"cpu_ms_per_frame", cpu_ms},
                         {"speedup_vs_opencv", speedup}});
+      }
+      if (bits == 8) {
+        // Seam weights of the render's orthoimage (the same for either bit depth).
+        Orthorectifier worker(camera, [] {
+          OrthoOptions o;
+          o.footprint_only = true;
+          return o;
+        }());
+        OrthoImage out;
+        worker.Run(frame, g.mosaic_from_image, &out);
+        std::array<Eigen::Vector2d, 4> quad;
+        const std::array<Eigen::Vector2d, 4> corners = {
+            Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(camera.width - 0.5, -0.5),
+            Eigen::Vector2d(camera.width - 0.5, camera.height - 0.5),
+            Eigen::Vector2d(-0.5, camera.height - 0.5)};
+        for (int k = 0; k < 4; ++k) {
+          quad[k] = (out.ortho_from_image * corners[k].homogeneous()).hnormalized();
+        }
+        cv::Mat weight;
+        double reference_cpu_ms = 0.0;
+        for (const char* path :
+             {"feather scalar rows", "feather SSE2 spans", "feather AVX2 spans"}) {
+          const std::string name = path;
+          const bool scalar = name == "feather scalar rows";
+          const bool before = simd::SetAvx2Allowed(name == "feather AVX2 spans");
+          if (name == "feather AVX2 spans" && !simd::Avx2()) {
+            simd::SetAvx2Allowed(before);
+            continue;
+          }
+          const double cpu_start = ThreadCpuMs();
+          for (int i = 0; i < frames; ++i) {
+            if (scalar) {
+              feather::WeightScalar(quad, 24.0, out.mask, &weight);
+            } else {
+              feather::Weight(quad, 24.0, out.mask, &weight);
+            }
+          }
+          const double cpu_ms = (ThreadCpuMs() - cpu_start) / frames;
+          simd::SetAvx2Allowed(before);
+          if (scalar) reference_cpu_ms = cpu_ms;
+          std::printf("%-5s %-10.0f %-22s %-12s %-12s %-12.3f %-10s %.2fx the scalar rows\n", "-",
+                      off_nadir, path,
+                      (std::to_string(weight.cols) + "x" + std::to_string(weight.rows)).c_str(),
+                      "-", cpu_ms, "", reference_cpu_ms / cpu_ms);
+          rows.push_back({{"off_nadir_deg", off_nadir},
+                          {"feather", name},
+                          {"ortho_width", weight.cols},
+                          {"ortho_height", weight.rows},
+                          {"cpu_ms_per_frame", cpu_ms},
+                          {"speedup_vs_scalar_rows", reference_cpu_ms / cpu_ms}});
+        }
       }
     }
   }

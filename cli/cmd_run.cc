@@ -112,6 +112,10 @@ int RunRun(int argc, char** argv) {
               "frame images kept in memory; older ones the optimizer may re-render wait in an "
               "unnamed file in the store folder (0: all in memory)",
               "32", "N");
+  args.Option("--publish-interval",
+              "seconds between publishes of a new generation (the latency a frame waits for its "
+              "publish; longer: fewer tile writes)",
+              "0.25", "S");
   args.Option("--sync-interval",
               "seconds between flushes of the store's file system to disk (0: the kernel's own "
               "write-back, up to ~30 s)",
@@ -154,6 +158,7 @@ int RunRun(int argc, char** argv) {
   options.registration_threads = args.GetInt("--registration-threads");
   options.max_cached_tiles = args.GetInt("--max-cached-tiles");
   options.sync_interval_s = args.GetDouble("--sync-interval");
+  options.publish_interval_s = args.GetDouble("--publish-interval");
   options.images_in_memory = args.GetInt("--images-in-memory");
   options.pos_position_sigma_m = args.GetDouble("--pos-sigma");
   options.pos_attitude_sigma_deg = args.GetDouble("--att-sigma");

@@ -17,13 +17,13 @@
 #include <limits>
 #include <map>
 #include <mutex>
-#include <opencv2/core/hal/intrin.hpp>
 #include <opencv2/imgproc.hpp>
 #include <set>
 #include <stdexcept>
 #include <thread>
 
 #include "buffer_view.h"
+#include "feather_weight.h"
 #include "fusion_cost.h"
 #include "helper_threads.h"
 #include "image_spill.h"
@@ -845,7 +845,7 @@ class MapFusion::Impl {
   // outer pixel edges, where the distance to the border is the least distance to the four
   // edge lines (exact, where distanceTransform approximates it over a whole-image pass):
   // weight = min(1, (distance + 0.5) / feather_px) inside the mask, as distanceTransform
-  // measured to the centre of the first pixel outside.
+  // measured to the centre of the first pixel outside (src/feather_weight.h).
   void FeatherWeight(const OrthoImage& out, cv::Mat* weight) const {
     const double w = camera_.width, h = camera_.height;
     std::array<Eigen::Vector2d, 4> q;
@@ -853,63 +853,7 @@ class MapFusion::Impl {
         Eigen::Vector2d(-0.5, -0.5), Eigen::Vector2d(w - 0.5, -0.5),
         Eigen::Vector2d(w - 0.5, h - 0.5), Eigen::Vector2d(-0.5, h - 0.5)};
     for (int k = 0; k < 4; ++k) q[k] = ApplyHomography(out.ortho_from_image, corners[k]);
-    double area2 = 0.0;
-    for (int k = 0; k < 4; ++k) {
-      const Eigen::Vector2d& a = q[k];
-      const Eigen::Vector2d& b = q[(k + 1) % 4];
-      area2 += a.x() * b.y() - b.x() * a.y();
-    }
-    const double orientation = area2 >= 0.0 ? 1.0 : -1.0;
-    // Per edge: (distance + 0.5) / feather = ax * x + ay * y + c, inward positive.
-    std::array<float, 4> ax, ay, c;
-    const double inv_feather = 1.0 / options_.feather_px;
-    for (int k = 0; k < 4; ++k) {
-      const Eigen::Vector2d d = q[(k + 1) % 4] - q[k];
-      const double len = std::max(d.norm(), 1e-9);
-      const Eigen::Vector2d inward = orientation * Eigen::Vector2d(-d.y(), d.x()) / len;
-      ax[k] = static_cast<float>(inward.x() * inv_feather);
-      ay[k] = static_cast<float>(inward.y() * inv_feather);
-      c[k] = static_cast<float>((0.5 - inward.dot(q[k])) * inv_feather);
-    }
-    weight->create(out.mask.size(), CV_32F);
-    for (int y = 0; y < weight->rows; ++y) {
-      float* row = weight->ptr<float>(y);
-      const uint8_t* inside = out.mask.ptr<uint8_t>(y);
-      std::array<float, 4> base;
-      for (int k = 0; k < 4; ++k) base[k] = ay[k] * static_cast<float>(y) + c[k];
-      int x = 0;
-#if CV_SIMD128
-      // Four pixels per vector, the scalar loop's operations in its order (multiply, add, min,
-      // clamp): identical weights. The compiler does not vectorize the scalar form at -O2.
-      const cv::v_float32x4 zero = cv::v_setzero_f32(), one = cv::v_setall_f32(1.0f);
-      const cv::v_float32x4 ramp(0.0f, 1.0f, 2.0f, 3.0f);
-      std::array<cv::v_float32x4, 4> vax, vbase;
-      for (int k = 0; k < 4; ++k) {
-        vax[k] = cv::v_setall_f32(ax[k]);
-        vbase[k] = cv::v_setall_f32(base[k]);
-      }
-      for (; x + 4 <= weight->cols; x += 4) {
-        const cv::v_float32x4 fx = cv::v_setall_f32(static_cast<float>(x)) + ramp;
-        const cv::v_float32x4 v =
-            cv::v_min(cv::v_min(vax[0] * fx + vbase[0], vax[1] * fx + vbase[1]),
-                      cv::v_min(vax[2] * fx + vbase[2], vax[3] * fx + vbase[3]));
-        // Outside the mask: all bits cleared (0.0f). The 4 mask bytes are copied to an aligned
-        // word first (v_load_expand_q reads them as one 32-bit load).
-        uint32_t word = 0;
-        std::memcpy(&word, inside + x, sizeof(word));
-        const cv::v_uint32x4 in = cv::v_load_expand_q(reinterpret_cast<const uchar*>(&word));
-        const cv::v_float32x4 keep = cv::v_reinterpret_as_f32(in != cv::v_setzero_u32());
-        cv::v_store(row + x, cv::v_min(cv::v_max(v, zero), one) & keep);
-      }
-#endif
-      for (; x < weight->cols; ++x) {
-        const float fx = static_cast<float>(x);
-        float v = std::min(std::min(ax[0] * fx + base[0], ax[1] * fx + base[1]),
-                           std::min(ax[2] * fx + base[2], ax[3] * fx + base[3]));
-        v = std::min(std::max(v, 0.0f), 1.0f);
-        row[x] = inside[x] ? v : 0.0f;
-      }
-    }
+    feather::Weight(q, options_.feather_px, out.mask, weight);
   }
 
   void StopThread() {

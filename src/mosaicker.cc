@@ -297,7 +297,9 @@ bool MosaickerOptions::IsValid(std::string* error) const {
         (wide_search_radius_px >= search_radius_px && wide_search_radius_px <= 1024.0))) {
     return fail("wide_search_radius_px must be 0 (no second try) or in [search_radius_px, 1024]");
   }
-  if (!(publish_interval_s > 0.0)) return fail("publish_interval_s must be positive");
+  if (!(publish_interval_s > 0.0) || !std::isfinite(publish_interval_s)) {
+    return fail("publish_interval_s must be a positive number of seconds");
+  }
   if (registration_threads < 1 || registration_threads > 64) {
     return fail("registration_threads must be in 1..64");
   }

@@ -264,6 +264,10 @@ TEST(MosaickerApiTest, OptionsAreValidatedWithMessagesNamingTheOption) {
       {"wide_search_radius_px", [](MosaickerOptions* o) { o->wide_search_radius_px = 32.0; }},
       {"wide_search_radius_px", [](MosaickerOptions* o) { o->wide_search_radius_px = 2048.0; }},
       {"publish_interval_s", [](MosaickerOptions* o) { o->publish_interval_s = 0.0; }},
+      {"publish_interval_s",
+       [](MosaickerOptions* o) {
+         o->publish_interval_s = std::numeric_limits<double>::infinity();
+       }},
       {"heap_trim_interval_frames", [](MosaickerOptions* o) { o->heap_trim_interval_frames = -1; }},
       {"max_cached_tiles", [](MosaickerOptions* o) { o->max_cached_tiles = 0; }},
       {"writer_nice", [](MosaickerOptions* o) { o->writer_nice = 20; }},
