@@ -29,6 +29,7 @@
 #include <thread>
 #include <tuple>
 
+#include "../src/simd_dispatch.h"
 #include "../src/store_internal.h"
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
@@ -587,8 +588,16 @@ void ExpectBlendMatchesTheContractExactly(PixelType type, const std::string& nam
 }
 
 TEST(TileStoreTest, IntegerBlendMatchesTheContractExactly) {
-  ExpectBlendMatchesTheContractExactly<uint16_t>(PixelType::kUInt16, "blend16");
-  ExpectBlendMatchesTheContractExactly<uint8_t>(PixelType::kByte, "blend8");
+  // AVX2 where the CPU has it (8 samples per vector of 8 floats), then SSE2's two vectors of 4.
+  for (const bool avx2 : {true, false}) {
+    SCOPED_TRACE(avx2 ? "AVX2 allowed" : "SSE2");
+    const bool before = simd::SetAvx2Allowed(avx2);
+    ExpectBlendMatchesTheContractExactly<uint16_t>(PixelType::kUInt16,
+                                                   avx2 ? "blend16" : "blend16_sse2");
+    ExpectBlendMatchesTheContractExactly<uint8_t>(PixelType::kByte,
+                                                  avx2 ? "blend8" : "blend8_sse2");
+    simd::SetAvx2Allowed(before);
+  }
 }
 
 // The caller's state goes into manifest.json as the text it was given (the Mosaicker's is its
