@@ -3,12 +3,17 @@
 // its cost functions, with analytic Jacobians. With autodiff (ceres::Jet<double, 16> through
 // both homographies of a tie) residual evaluation was about two thirds of the optimizer's CPU
 // time; the update is linear in the 8 parameters, so its Jacobian is a few products. Not
-// installed; tests/map_fusion_test.cc checks both costs against autodiff of the original form.
+// installed; tests/map_fusion_test.cc checks the costs against autodiff of the original form.
+// The solve uses PairTieCost (a pair's ties in one block) and PriorCost; TieCost is the one-tie
+// form the tests hold PairTieCost to.
 
+#include <ceres/cost_function.h>
 #include <ceres/sized_cost_function.h>
 
 #include <Eigen/Core>
 #include <array>
+#include <cmath>
+#include <vector>
 
 namespace irmosaic::fusion {
 
@@ -85,6 +90,7 @@ inline void MapNormalized(const Eigen::Matrix3d& mosaic_from_normalized, const E
 
 // A tie point: both frames' placements should put it at the same mosaic pixel. Residual
 // (q_a - q_b) / sigma, mosaic px in units of the tie's sigma; parameters delta_a, delta_b.
+// (The solve holds a pair's ties in one PairTieCost; this is one tie's residual, for tests.)
 class TieCost final : public ceres::SizedCostFunction<2, 8, 8> {
  public:
   TieCost(const Eigen::Matrix3d& mosaic_from_image_a, const Eigen::Matrix3d& mosaic_from_image_b,
@@ -113,6 +119,98 @@ class TieCost final : public ceres::SizedCostFunction<2, 8, 8> {
   Eigen::Matrix3d mosaic_from_normalized_a_, mosaic_from_normalized_b_;  // H * S^-1.
   Eigen::Vector2d normalized_a_, normalized_b_;                          // S * p.
   double inv_sigma_;
+};
+
+// The robust weighting of one tie: rho(s) of its squared whitened residual s, the pair's
+// weight w times s (least squares) or times b^2 log(1 + s / b^2) / s (Cauchy of scale b), as
+// ceres::ScaledLoss(w) over nothing or over ceres::CauchyLoss(b).
+struct TieLoss {
+  double weight = 1.0;
+  double cauchy_scale = 0.0;  // b; 0: least squares.
+};
+
+// rho(s) / s of `loss` and its derivative in s. Near s = 0 the series (log1p(x) / x and its
+// derivative lose digits there).
+inline void RobustRatio(const TieLoss& loss, double s, double* g, double* dg) {
+  if (loss.cauchy_scale <= 0.0) {
+    *g = loss.weight;
+    *dg = 0.0;
+    return;
+  }
+  const double b2 = loss.cauchy_scale * loss.cauchy_scale;
+  const double x = s / b2;
+  if (x < 1e-4) {
+    // log1p(x) / x = 1 - x / 2 + x^2 / 3 - ...; its derivative -1/2 + 2 x / 3 - ..., in s / b^2.
+    *g = loss.weight * (1.0 - x / 2.0 + x * x / 3.0);
+    *dg = loss.weight * (-0.5 + 2.0 * x / 3.0) / b2;
+    return;
+  }
+  const double log_term = std::log1p(x);
+  *g = loss.weight * log_term / x;
+  *dg = loss.weight * (1.0 / (1.0 + x) - log_term / x) / (x * b2);
+}
+
+// All tie points of one pair in one residual block: 2 values per tie, each tie's residual r
+// (TieCost's) scaled by sqrt(rho(s) / s), s = |r|^2, so that the block's squared norm is the sum
+// of rho(s) over its ties: the objective of one TieCost per tie under the loss, with one block
+// instead of one per tie (Ceres' per-block work, the Jacobian's product terms and their
+// sorting, was most of a solve). The Jacobian is exact for that scaled residual:
+// sqrt(g) J + (g' / sqrt(g)) r r^T J, g = rho(s) / s; its gradient is rho'(s) J^T r, as Ceres'
+// own loss correction gives. The loss is read at each evaluation, so a solve may change it
+// between stages.
+class PairTieCost final : public ceres::CostFunction {
+ public:
+  PairTieCost(const Eigen::Matrix3d& mosaic_from_image_a,
+              const Eigen::Matrix3d& mosaic_from_image_b, const Normalizer& n,
+              const std::vector<Eigen::Vector2d>& image_px_a,
+              const std::vector<Eigen::Vector2d>& image_px_b, double inv_sigma, const TieLoss* loss)
+      : mosaic_from_normalized_a_(mosaic_from_image_a * n.ImageFromNormalized()),
+        mosaic_from_normalized_b_(mosaic_from_image_b * n.ImageFromNormalized()),
+        inv_sigma_(inv_sigma),
+        loss_(loss) {
+    normalized_a_.reserve(image_px_a.size());
+    normalized_b_.reserve(image_px_b.size());
+    for (const Eigen::Vector2d& p : image_px_a) normalized_a_.push_back(n.Normalize(p));
+    for (const Eigen::Vector2d& p : image_px_b) normalized_b_.push_back(n.Normalize(p));
+    set_num_residuals(static_cast<int>(2 * normalized_a_.size()));
+    mutable_parameter_block_sizes()->assign({8, 8});
+  }
+
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    double* ja_all = jacobians ? jacobians[0] : nullptr;
+    double* jb_all = jacobians ? jacobians[1] : nullptr;
+    for (size_t t = 0; t < normalized_a_.size(); ++t) {
+      double qa[2], qb[2];
+      double* ja = ja_all ? ja_all + 16 * t : nullptr;
+      double* jb = jb_all ? jb_all + 16 * t : nullptr;
+      MapNormalized(mosaic_from_normalized_a_, normalized_a_[t], parameters[0], inv_sigma_, qa, ja);
+      MapNormalized(mosaic_from_normalized_b_, normalized_b_[t], parameters[1], -inv_sigma_, qb,
+                    jb);
+      const double r0 = qa[0] + qb[0], r1 = qa[1] + qb[1];
+      double g, dg;
+      RobustRatio(*loss_, r0 * r0 + r1 * r1, &g, &dg);
+      const double root = std::sqrt(g);
+      residuals[2 * t] = root * r0;
+      residuals[2 * t + 1] = root * r1;
+      const double k = dg / root;
+      for (double* j : {ja, jb}) {
+        if (j == nullptr) continue;
+        for (int c = 0; c < 8; ++c) {
+          const double rj = r0 * j[c] + r1 * j[8 + c];  // r^T J, column c.
+          j[c] = root * j[c] + k * r0 * rj;
+          j[8 + c] = root * j[8 + c] + k * r1 * rj;
+        }
+      }
+    }
+    return true;
+  }
+
+ private:
+  Eigen::Matrix3d mosaic_from_normalized_a_, mosaic_from_normalized_b_;  // H * S^-1.
+  std::vector<Eigen::Vector2d> normalized_a_, normalized_b_;             // S * p.
+  double inv_sigma_;
+  const TieLoss* loss_;
 };
 
 // POS prior: the frame's corners and centre stay near where POS puts them, whitened by the

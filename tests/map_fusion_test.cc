@@ -3,6 +3,7 @@
 #include "irmosaic/map_fusion.h"
 
 #include <ceres/autodiff_cost_function.h>
+#include <ceres/loss_function.h>
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -397,6 +398,149 @@ TEST(MapFusionTest, AnalyticCostJacobiansMatchAutodiff) {
   std::printf("analytic vs autodiff: residuals %.2e, Jacobians %.2e (relative)\n", worst_residual,
               worst_jacobian);
   EXPECT_LE(worst_residual, 1e-12);
+  EXPECT_LE(worst_jacobian, 1e-9);
+}
+
+// One tie under a pair's robust loss, as PairTieCost scales it (for autodiff): the tie's
+// residual r times sqrt(rho(s) / s), s = |r|^2, rho = w s or w b^2 log(1 + s / b^2).
+struct ReferenceScaledTie {
+  template <typename T>
+  bool operator()(const T* da, const T* db, T* residual) const {
+    T r[2];
+    tie(da, db, r);
+    const T s = r[0] * r[0] + r[1] * r[1];
+    T g = T(loss.weight);
+    if (loss.cauchy_scale > 0.0) {
+      const double b2 = loss.cauchy_scale * loss.cauchy_scale;
+      g = T(loss.weight * b2) * log1p(s / T(b2)) / s;
+    }
+    residual[0] = sqrt(g) * r[0];
+    residual[1] = sqrt(g) * r[1];
+    return true;
+  }
+  ReferenceTie tie;
+  fusion::TieLoss loss;
+};
+
+// rho(s) / s and its derivative near s = 0 against their series, and across the switch from
+// the series to the closed form.
+TEST(MapFusionTest, RobustRatioFollowsTheCauchyLossAtAnyResidual) {
+  const fusion::TieLoss loss{0.7, 3.0};
+  const double b2 = 9.0;
+  double worst_g = 0.0, worst_dg = 0.0;
+  for (double x = 1e-12; x <= 1e-2; x *= 1.7) {
+    double g_series = 0.0, dg_series = 0.0, power = 1.0;
+    for (int k = 0; k < 12; ++k) {  // log1p(x) / x = sum (-x)^k / (k + 1).
+      g_series += power / (k + 1);
+      if (k + 1 < 12) dg_series += (k % 2 == 0 ? -1.0 : 1.0) * (k + 1) * std::pow(x, k) / (k + 2);
+      power *= -x;
+    }
+    double g, dg;
+    fusion::RobustRatio(loss, x * b2, &g, &dg);
+    worst_g = std::max(worst_g, std::abs(g / (loss.weight * g_series) - 1.0));
+    worst_dg = std::max(worst_dg, std::abs(dg / (loss.weight * dg_series / b2) - 1.0));
+  }
+  std::printf("rho(s)/s against its series: %.1e, its derivative %.1e (relative)\n", worst_g,
+              worst_dg);
+  EXPECT_LE(worst_g, 1e-12);
+  EXPECT_LE(worst_dg, 1e-6);
+  // Least squares: the weight, flat.
+  double g, dg;
+  fusion::RobustRatio({0.4, 0.0}, 123.0, &g, &dg);
+  EXPECT_EQ(g, 0.4);
+  EXPECT_EQ(dg, 0.0);
+}
+
+// A pair's ties in one residual block: its squared norm is the sum of the ties' robust costs
+// (as ceres::ScaledLoss over ceres::CauchyLoss gives them), its gradient Ceres' for one block
+// per tie, its Jacobian autodiff's of the scaled residual.
+TEST(MapFusionTest, OneBlockPerPairGivesEachTiesRobustCostGradientAndJacobian) {
+  const fusion::Normalizer n{319.5, 255.5, 320.0};
+  std::mt19937 rng(29);
+  std::uniform_real_distribution<double> pixel_x(0.0, 639.0), pixel_y(0.0, 511.0), unit(0.0, 1.0);
+  std::normal_distribution<double> noise(0.0, 1.0);
+  double worst_cost = 0.0, worst_gradient = 0.0, worst_jacobian = 0.0;
+  int ties_seen = 0;
+  for (int trial = 0; trial < 120; ++trial) {
+    const Eigen::Matrix3d ha = RandomPlacement(rng);
+    Eigen::Matrix3d hb = ha;  // Overlapping frames: b shifted and turned a little against a.
+    hb.col(2) += Eigen::Vector3d(300.0 * noise(rng), 200.0 * noise(rng), 0.0);
+    const double inv_sigma = 1.0 / (0.1 + std::abs(noise(rng)));
+    const fusion::TieLoss loss{0.05 + 0.95 * unit(rng), trial % 3 == 0 ? 0.0 : 3.0};
+    const int count = 1 + trial % 24;
+    std::vector<Eigen::Vector2d> pa, pb;
+    for (int t = 0; t < count; ++t) {
+      pa.emplace_back(pixel_x(rng), pixel_y(rng));
+      // The tie's partner where b's placement puts a's point, off by 0.02 to 50 sigma.
+      const Eigen::Vector2d on_mosaic = ApplyHomography(ha, pa.back());
+      const double off = 0.02 * std::pow(2500.0, unit(rng)) / inv_sigma;
+      const double angle = 6.283 * unit(rng);
+      pb.push_back(ApplyHomography(hb.inverse(), on_mosaic) +
+                   off * Eigen::Vector2d(std::cos(angle), std::sin(angle)));
+    }
+    std::array<double, 8> da{}, db{};
+    for (int k = 0; k < 8; ++k) {
+      da[k] = 1e-4 * noise(rng) * (k >= 6 ? 0.1 : 1.0);
+      db[k] = 1e-4 * noise(rng) * (k >= 6 ? 0.1 : 1.0);
+    }
+    const double* parameters[2] = {da.data(), db.data()};
+    const fusion::PairTieCost pair(ha, hb, n, pa, pb, inv_sigma, &loss);
+    ASSERT_EQ(pair.num_residuals(), 2 * count);
+    std::vector<double> r(2 * count), ja(16 * count), jb(16 * count);
+    double* jacobians[2] = {ja.data(), jb.data()};
+    ASSERT_TRUE(pair.Evaluate(parameters, r.data(), jacobians));
+
+    ceres::ScaledLoss rho(
+        loss.cauchy_scale > 0.0 ? new ceres::CauchyLoss(loss.cauchy_scale) : nullptr, loss.weight,
+        ceres::TAKE_OWNERSHIP);
+    double cost = 0.0;
+    Eigen::Matrix<double, 16, 1> gradient = Eigen::Matrix<double, 16, 1>::Zero();
+    for (int t = 0; t < count; ++t) {
+      ReferenceTie tie{ha, hb, n, pa[t], pb[t], inv_sigma};
+      const fusion::TieCost one(ha, hb, n, pa[t], pb[t], inv_sigma);
+      double r_tie[2], ja_tie[16], jb_tie[16];
+      double* tie_jacobians[2] = {ja_tie, jb_tie};
+      ASSERT_TRUE(one.Evaluate(parameters, r_tie, tie_jacobians));
+      double rho_tie[3];
+      rho.Evaluate(r_tie[0] * r_tie[0] + r_tie[1] * r_tie[1], rho_tie);
+      cost += rho_tie[0];
+      for (int c = 0; c < 8; ++c) {
+        gradient(c) += rho_tie[1] * (ja_tie[c] * r_tie[0] + ja_tie[8 + c] * r_tie[1]);
+        gradient(8 + c) += rho_tie[1] * (jb_tie[c] * r_tie[0] + jb_tie[8 + c] * r_tie[1]);
+      }
+      const ceres::AutoDiffCostFunction<ReferenceScaledTie, 2, 8, 8> reference(
+          new ReferenceScaledTie{tie, loss});
+      double r_ref[2], ja_ref[16], jb_ref[16];
+      double* ref_jacobians[2] = {ja_ref, jb_ref};
+      ASSERT_TRUE(reference.Evaluate(parameters, r_ref, ref_jacobians));
+      worst_jacobian = std::max({worst_jacobian, RelativeDifference(&ja[16 * t], ja_ref, 16),
+                                 RelativeDifference(&jb[16 * t], jb_ref, 16)});
+      ++ties_seen;
+    }
+    double norm = 0.0;
+    for (double v : r) norm += v * v;
+    worst_cost = std::max(worst_cost, std::abs(norm - cost) / cost);
+    Eigen::Matrix<double, 16, 1> block_gradient = Eigen::Matrix<double, 16, 1>::Zero();
+    for (int row = 0; row < 2 * count; ++row) {
+      for (int c = 0; c < 8; ++c) {
+        block_gradient(c) += ja[8 * row + c] * r[row];
+        block_gradient(8 + c) += jb[8 * row + c] * r[row];
+      }
+    }
+    worst_gradient = std::max(worst_gradient, (block_gradient - gradient).norm() / gradient.norm());
+
+    // Residuals alone are the same; a frozen frame's block (null) leaves the other's as it was.
+    std::vector<double> r_plain(2 * count), jb_only(16 * count);
+    ASSERT_TRUE(pair.Evaluate(parameters, r_plain.data(), nullptr));
+    EXPECT_EQ(r_plain, r);
+    double* one_block[2] = {nullptr, jb_only.data()};
+    ASSERT_TRUE(pair.Evaluate(parameters, r_plain.data(), one_block));
+    EXPECT_EQ(jb_only, jb);
+  }
+  std::printf("one block per pair (%d ties): cost %.1e, gradient %.1e, Jacobian %.1e (relative)\n",
+              ties_seen, worst_cost, worst_gradient, worst_jacobian);
+  EXPECT_LE(worst_cost, 1e-12);
+  EXPECT_LE(worst_gradient, 1e-9);
   EXPECT_LE(worst_jacobian, 1e-9);
 }
 
