@@ -5,6 +5,7 @@
 #include <time.h>
 
 #include <Eigen/Dense>
+#include <Eigen/Sparse>
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -1304,40 +1305,70 @@ class MapFusion::Impl {
     }
     if (count < 6 || unknown.empty()) return {};
     scale = std::max(scale / count, 1e-6);
+    // The normal equations are sparse (a frame's gain and offset couple to its pairs' frames
+    // only); a dense factorization grows with the cube of the frames (600 unknowns in a solve
+    // of the whole window).
     const int n = static_cast<int>(unknown.size()) * 2;
-    Eigen::MatrixXd ata = Eigen::MatrixXd::Zero(n, n);
+    std::vector<Eigen::Triplet<double>> ata;  // Summed where they repeat.
     Eigen::VectorXd atb = Eigen::VectorXd::Zero(n);
     for (const Pair& p : pairs) {
-      const size_t a = p.base->slot, b = p.templ->slot;
+      // The pair's equations summed over its ties first (gain and offset of the base, then of
+      // the template), each frame either unknown (its column) or fixed (its values).
+      int column[2] = {-1, -1};
+      double fixed_gain[2] = {1.0, 1.0}, fixed_offset[2] = {0.0, 0.0};
+      const size_t slots[2] = {p.base->slot, p.templ->slot};
+      for (int f = 0; f < 2; ++f) {
+        const auto it = unknown.find(slots[f]);
+        if (it != unknown.end()) {
+          column[f] = 2 * it->second;
+        } else {
+          const FramePlacement& fixed = current.at(slots[f]);
+          fixed_gain[f] = fixed.gain;
+          fixed_offset[f] = fixed.offset / scale;
+        }
+      }
+      if (column[0] < 0 && column[1] < 0) continue;
+      Eigen::Matrix4d block = Eigen::Matrix4d::Zero();
+      Eigen::Vector4d rhs_block = Eigen::Vector4d::Zero();
       for (size_t t = 0; t < p.base_values.size(); ++t) {
-        const double va = p.base_values[t] / scale, vb = p.template_values[t] / scale;
-        if (!std::isfinite(va) || !std::isfinite(vb)) continue;
-        // Equation: gain_a va + off_a - gain_b vb - off_b = 0.
-        std::vector<std::pair<int, double>> row;
+        const double v[2] = {p.base_values[t] / scale, p.template_values[t] / scale};
+        if (!std::isfinite(v[0]) || !std::isfinite(v[1])) continue;
+        // Equation: gain_a va + off_a - gain_b vb - off_b = 0; a fixed frame's terms go right.
+        Eigen::Vector4d row = Eigen::Vector4d::Zero();
         double rhs = 0.0;
-        for (const auto& [slot, v, sign] : {std::tuple{a, va, 1.0}, std::tuple{b, vb, -1.0}}) {
-          auto it = unknown.find(slot);
-          if (it != unknown.end()) {
-            row.emplace_back(2 * it->second, sign * v);
-            row.emplace_back(2 * it->second + 1, sign);
+        for (int f = 0; f < 2; ++f) {
+          const double sign = f == 0 ? 1.0 : -1.0;
+          if (column[f] >= 0) {
+            row(2 * f) = sign * v[f];
+            row(2 * f + 1) = sign;
           } else {
-            const FramePlacement& fixed = current.at(slot);
-            rhs -= sign * (fixed.gain * v + fixed.offset / scale);
+            rhs -= sign * (fixed_gain[f] * v[f] + fixed_offset[f]);
           }
         }
-        for (const auto& [i, vi] : row) {
-          atb(i) += vi * rhs;
-          for (const auto& [j, vj] : row) ata(i, j) += vi * vj;
+        block.noalias() += row * row.transpose();
+        rhs_block += row * rhs;
+      }
+      for (int i = 0; i < 4; ++i) {
+        if (column[i / 2] < 0) continue;
+        atb(column[i / 2] + i % 2) += rhs_block(i);
+        for (int j = 0; j < 4; ++j) {
+          if (column[j / 2] >= 0) {
+            ata.emplace_back(column[i / 2] + i % 2, column[j / 2] + j % 2, block(i, j));
+          }
         }
       }
     }
     const double w = 1.0 / (options_.gain_prior_sigma * options_.gain_prior_sigma);
     for (int k = 0; k < n / 2; ++k) {
-      ata(2 * k, 2 * k) += w;
+      ata.emplace_back(2 * k, 2 * k, w);
       atb(2 * k) += w;
-      ata(2 * k + 1, 2 * k + 1) += w;
+      ata.emplace_back(2 * k + 1, 2 * k + 1, w);
     }
-    const Eigen::VectorXd x = ata.ldlt().solve(atb);
+    Eigen::SparseMatrix<double> normal(n, n);
+    normal.setFromTriplets(ata.begin(), ata.end());
+    const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> factor(normal);
+    if (factor.info() != Eigen::Success) return {};
+    const Eigen::VectorXd x = factor.solve(atb);
     std::map<size_t, std::pair<double, double>> result;
     if (!x.allFinite()) return result;
     for (const auto& [slot, k] : unknown) {
