@@ -7,6 +7,7 @@
 //                [--publish-interval S] [--max-rerenders N] [--rerender-threshold PX]
 //                [--settled-rerender-threshold PX] [--settled-rerenders] [--window N]
 //                [--short-window N] [--full-every N] [--solve-every N] [--solve-iterations N]
+//                [--sparse-library SUITE_SPARSE|EIGEN_SPARSE]
 //                [--registration-threads N] [--max-neighbours N]
 //                [--ground-cache-mb N]
 //                [--lsm-level N] [--seed N] [--first N] [--bit-depth 8|16]
@@ -124,6 +125,7 @@ struct Tuning {
   int short_window_frames = -1;  // FusionOptions::short_window_frames (-1: the default).
   int full_window_every = -1;    // FusionOptions::full_window_every (-1: the default).
   int solve_iterations = -1;     // FusionOptions::solve_iterations (-1: the default).
+  std::string sparse_library;    // FusionOptions::sparse_library (empty: the default).
   int registration_threads = -1;
   int max_neighbours = -1;  // FusionOptions::max_neighbours (-1: the default).
   int optimizer_nice = -1;
@@ -378,6 +380,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
   }
   if (g_tuning.full_window_every > 0) options.fusion.full_window_every = g_tuning.full_window_every;
   if (g_tuning.solve_iterations > 0) options.fusion.solve_iterations = g_tuning.solve_iterations;
+  if (!g_tuning.sparse_library.empty()) options.fusion.sparse_library = g_tuning.sparse_library;
   if (g_tuning.solve_every_frames > 0) {
     options.fusion.solve_every_frames = g_tuning.solve_every_frames;
   }
@@ -1106,6 +1109,8 @@ int main(int argc, char** argv) {
       g_tuning.full_window_every = std::stoi(value());
     } else if (a == "--solve-iterations") {
       g_tuning.solve_iterations = std::stoi(value());
+    } else if (a == "--sparse-library") {
+      g_tuning.sparse_library = value();
     } else if (a == "--solve-every") {
       g_tuning.solve_every_frames = std::stoi(value());
     } else if (a == "--registration-threads") {
@@ -1176,7 +1181,7 @@ int main(int argc, char** argv) {
              "[--publish-interval S] [--max-rerenders N] [--rerender-threshold PX] "
              "[--settled-rerender-threshold PX] [--settled-rerenders] "
              "[--window N] [--short-window N] [--full-every N] [--solve-every N] "
-             "[--solve-iterations N] "
+             "[--solve-iterations N] [--sparse-library SUITE_SPARSE|EIGEN_SPARSE] "
              "[--registration-threads N] [--max-neighbours N] [--lsm-level N] "
              "[--keypoints-at-level 0|1] "
              "[--max-pair-sigma PX] "

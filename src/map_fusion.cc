@@ -129,6 +129,12 @@ bool FusionOptions::IsValid(std::string* error) const {
     return fail("sparse_library must be SUITE_SPARSE, CX_SPARSE or EIGEN_SPARSE, not '" +
                 sparse_library + "'");
   }
+  if (solver_type == ceres::SPARSE_NORMAL_CHOLESKY &&
+      !ceres::IsSparseLinearAlgebraLibraryTypeAvailable(library)) {
+    return fail("sparse_library " + sparse_library +
+                " is not in this build of Ceres; choose one it has (SUITE_SPARSE, EIGEN_SPARSE) "
+                "or a dense linear_solver (DENSE_QR)");
+  }
   return true;
 }
 

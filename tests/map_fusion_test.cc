@@ -209,6 +209,30 @@ TEST(MapFusionTest, ThreeIterationsPerSolveReachThePlacementsOfSix) {
   EXPECT_LE(Max(three.seam), 1.0);
 }
 
+// The default sparse library (Eigen's, single-threaded; docs/fusion.md, "Sparse solver") solves
+// the same normal equations as SuiteSparse's CHOLMOD: the placements agree to round-off.
+TEST(MapFusionTest, EigenAndSuiteSparseSolvesReachTheSamePlacements) {
+  const Sweep s = MakeSweep(96, 6, 2.0, 0.3, 7);
+  FusionOptions options;
+  options.window_frames = 48;
+  options.solve_every_frames = 8;
+  ASSERT_EQ(options.sparse_library, "EIGEN_SPARSE");
+  const RunResult eigen = RunFusion(s, options, IdealRegistrar(s, 0.15, 9), 50.0, true);
+  options.sparse_library = "SUITE_SPARSE";
+  const RunResult cholmod = RunFusion(s, options, IdealRegistrar(s, 0.15, 9), 50.0, true);
+  ASSERT_EQ(eigen.rmse.size(), cholmod.rmse.size());
+  double largest_difference = 0.0;
+  for (size_t i = 0; i < eigen.rmse.size(); ++i) {
+    largest_difference = std::max(largest_difference, std::abs(eigen.rmse[i] - cholmod.rmse[i]));
+  }
+  std::printf(
+      "Eigen: mean %.4f px, SuiteSparse: mean %.4f px, largest per-frame difference %.2g px\n",
+      Mean(eigen.rmse), Mean(cholmod.rmse), largest_difference);
+  EXPECT_EQ(eigen.stats.solves, cholmod.stats.solves);
+  EXPECT_LT(largest_difference, 1e-3);
+  EXPECT_LT(Mean(eigen.rmse), 2.0);  // POS alone is ~18 px off (MakeSweep's 2 m, 0.3 deg).
+}
+
 TEST(MapFusionTest, SeamLagOnDiskFollowsTheRerenderBudget) {
   const Sweep s = MakeSweep(240, 6, 2.0, 0.3, 3);
   FusionOptions options;
@@ -1255,6 +1279,9 @@ TEST(MapFusionTest, OptionsAreValidated) {
   options.sparse_library = "NO_SUCH_LIBRARY";
   EXPECT_FALSE(options.IsValid(&error));
   EXPECT_NE(error.find("sparse_library"), std::string::npos);
+  options.sparse_library = "ACCELERATE_SPARSE";  // A Ceres name, but Apple's only.
+  EXPECT_FALSE(options.IsValid(&error));
+  EXPECT_NE(error.find("not in this build of Ceres"), std::string::npos);
   options = FusionOptions();
   options.registration_threads = 0;
   EXPECT_FALSE(options.IsValid(&error));

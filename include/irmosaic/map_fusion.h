@@ -166,10 +166,11 @@ struct FusionOptions {
   int feather_px = 24;            // Seam blending ramp width.
   int tie_patch_radius_px = 3;    // Radiometric samples: mean of a (2r+1)^2 patch.
   bool render = true;             // Paint into the sink (off for geometry-only runs).
-  // Ceres linear solver and sparse library by their Ceres names (docs/fusion.md has the
-  // measured choice).
+  // Ceres linear solver and sparse library by their Ceres names (docs/fusion.md, "Sparse
+  // solver", has the measured choice: Eigen's sparse Cholesky, single-threaded, costs a window
+  // less CPU than SuiteSparse's CHOLMOD, whose OpenMP workers spin beside the optimizer).
   std::string linear_solver = "SPARSE_NORMAL_CHOLESKY";
-  std::string sparse_library = "SUITE_SPARSE";
+  std::string sparse_library = "EIGEN_SPARSE";
   // At Finish(), the covariance of the last solve (Ceres) gives the expected placement RMSE
   // of its frames under the tie and POS error models: FusionStats::predicted_rmse_px.
   bool estimate_precision = false;
