@@ -261,6 +261,7 @@ int RunRun(int argc, char** argv) {
         {"settled_rerenders", s.fusion.settled_rerenders},
         {"settled_rerenders_on_leaving", s.fusion.settled_rerenders_on_leaving},
         {"settled_left_lagging", s.fusion.settled_left_lagging},
+        {"settled_repainted_after_solve", s.fusion.settled_repainted_after_solve},
         {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
         {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},

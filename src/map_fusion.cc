@@ -19,6 +19,7 @@
 #include <map>
 #include <mutex>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <set>
 #include <stdexcept>
 #include <thread>
@@ -481,6 +482,10 @@ class MapFusion::Impl {
     // lagged, and a solve that still moves it re-renders it whatever its budget).
     bool painted = false;
     bool left_fusion = false;
+    // Under mu_: where a solve put the frame after it left the fusion (a solve whose snapshot
+    // still held it, running while Push re-rendered it at the placement before): the frame's
+    // placement is not read from placements_ then, whose older slots the store may release.
+    std::optional<FramePlacement> moved_after_leaving;
     // The image on disk instead of in data.image (images_in_memory); written by the producer
     // under mu_.
     std::shared_ptr<const ImageSpill::Handle> spilled;
@@ -554,21 +559,39 @@ class MapFusion::Impl {
     // after that publish, and a kill in between left the frozen frame painted elsewhere for
     // good). At the sensor's rate frames leave settled already (docs/fusion.md), so this adds
     // to the publishes only when the writer is saturated.
-    Render(image, frame->data.image_clip, placement, renderer);
-    {
-      std::lock_guard<std::mutex> lock(mu_);
-      frame->rendered = placement;
-      stats_.settled_rerenders += 1;
-      stats_.settled_rerenders_on_leaving += 1;
+    // A solve whose snapshot held the frame may publish a newer placement meanwhile: it
+    // re-renders the frame there too (forced, SolveWindow), but this paint and its record, if
+    // they came last, would leave the frame on disk where the solution no longer puts it
+    // (session 43). So the paint is checked after it is done and made again at the newer
+    // placement; the solve's record waits on records_mu_ until this one is written.
+    FramePlacement painting = placement;
+    for (;;) {
+      Render(image, frame->data.image_clip, painting, renderer);
+      std::lock_guard<std::mutex> records(records_mu_);
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        if (frame->moved_after_leaving &&
+            frame->moved_after_leaving->optimized_times != painting.optimized_times) {
+          painting = *frame->moved_after_leaving;
+          stats_.settled_repainted_after_solve += 1;
+          continue;
+        }
+        frame->rendered = painting;
+        stats_.settled_rerenders += 1;
+        stats_.settled_rerenders_on_leaving += 1;
+      }
+      if (sink_) sink_->FramePlaced(painting);
+      return;
     }
-    if (sink_) sink_->FramePlaced(placement);
   }
 
   // Frees the images of held frames that are no registration candidate any more and that no
   // solve can re-render: older than the newest candidate_frames and window_frames, and
-  // refined (a solve reaches back past its window only to unrefined frames; a running one
-  // holds its own references). They stay held as frozen ends of pairs. Not during a replay:
-  // its interrupted solve may still need them.
+  // refined (a solve reaches back past its window only to unrefined frames), and out of a
+  // running solve's frames (it holds their images for its own re-renders only, which its
+  // budget may not reach; a frame it moves then is re-rendered later, when its paint lags its
+  // final placement). They stay held as frozen ends of pairs. Not during a replay: its
+  // interrupted solve may still need them.
   void ReleaseImagesLocked() {
     const size_t count = std::max(CandidateCount(), static_cast<size_t>(options_.window_frames));
     for (size_t k = 0; k + count < window_.size(); ++k) {
@@ -576,6 +599,7 @@ class MapFusion::Impl {
       if (f.data.image.empty() && !f.spilled) continue;
       if (options_.optimize && PlacementAt(f.slot).optimized_times == 0) continue;
       if (PaintLagsFinal(f)) continue;  // A solve re-renders it first (SolveWindow).
+      if (solving_ && f.slot >= solving_first_slot_) continue;  // Moved once more (session 43).
       f.data.image.release();
       f.spilled.reset();
     }
@@ -1123,6 +1147,7 @@ class MapFusion::Impl {
           live.residual_px = std::sqrt(residual[f->slot].first / residual[f->slot].second);
         }
         if (gains.count(f->slot)) std::tie(live.gain, live.offset) = gains[f->slot];
+        if (f->left_fusion) f->moved_after_leaving = live;
         // Compared with the frame as painted, so small moves that add up are re-rendered too.
         double shift = 0.0;
         const double score = PaintLag(f->rendered, live, &shift);
@@ -1206,6 +1231,8 @@ class MapFusion::Impl {
       const cv::Mat image = ImageOf(images[frame->slot]);
       if (!image.empty())
         Render(image, frame->data.image_clip, placement, renderer, /*refresh=*/true);
+      // After any record Push writes of an older placement (RenderSettled).
+      std::lock_guard<std::mutex> records(records_mu_);
       {
         std::lock_guard<std::mutex> lock(mu_);
         frame->rendered = placement;
@@ -1411,6 +1438,8 @@ class MapFusion::Impl {
   Renderer background_;
 
   mutable std::mutex mu_;
+  // Orders the sink's records of re-rendered frames (RenderSettled); taken before mu_.
+  std::mutex records_mu_;
   std::condition_variable cv_;
   bool stop_ = false;
   std::thread optimizer_;

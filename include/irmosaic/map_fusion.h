@@ -206,6 +206,9 @@ struct FusionStats {
   int64_t settled_rerenders = 0;
   int64_t settled_rerenders_on_leaving = 0;
   int64_t settled_left_lagging = 0;
+  // Of the re-renders as frames left, those painted again because a solve that still held the
+  // frame moved it while the first paint ran.
+  int64_t settled_repainted_after_solve = 0;
   // What the mosaic on disk lags behind the placements after each background solve's
   // re-renders, averaged over the solves (mosaic px): the RMS over the window's pairs of the
   // seam lag (the base frame's move since painted less the template's, at the overlap), and
