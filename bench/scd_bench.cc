@@ -118,17 +118,18 @@ std::vector<Scene> MakeScenes(int count, unsigned seed) {
   for (int i = 0; i < count; ++i) {
     Scene s;
     cv::imread(files[i % files.size()], cv::IMREAD_GRAYSCALE).convertTo(s.frame, CV_32F);
-    s.sub = Eigen::Vector2d(uni(rng) - 0.5, uni(rng) - 0.5);
+    // One draw a statement, y first: a call's argument order is unspecified, and every
+    // compiler must draw the same scenes.
+    const double sub_y = uni(rng) - 0.5;
+    s.sub = Eigen::Vector2d(uni(rng) - 0.5, sub_y);
     cv::Mat ortho, mb, mt;
     Warp(s.frame, Eigen::Vector2d::Zero(), &ortho, &mb);
     Warp(s.frame, s.sub, &ortho, &mt);
     for (int attempt = 0; attempt < 5000; ++attempt) {
-      s.a = cv::Rect(cv::Point(int(uni(rng) * (kCanvas.width - kCrop.width)),
-                               int(uni(rng) * (kCanvas.height - kCrop.height))),
-                     kCrop);
-      s.b = cv::Rect(cv::Point(int(uni(rng) * (kCanvas.width - kCrop.width)),
-                               int(uni(rng) * (kCanvas.height - kCrop.height))),
-                     kCrop);
+      const int ay = int(uni(rng) * (kCanvas.height - kCrop.height));
+      s.a = cv::Rect(cv::Point(int(uni(rng) * (kCanvas.width - kCrop.width)), ay), kCrop);
+      const int by = int(uni(rng) * (kCanvas.height - kCrop.height));
+      s.b = cv::Rect(cv::Point(int(uni(rng) * (kCanvas.width - kCrop.width)), by), kCrop);
       s.base_footprint = RandomFootprint(kCrop, &rng);
       s.templ_footprint = RandomFootprint(kCrop, &rng);
       s.overlap = ValidOverlap(mb(s.a) & s.base_footprint, mt(s.b) & s.templ_footprint,
@@ -138,7 +139,8 @@ std::vector<Scene> MakeScenes(int count, unsigned seed) {
     s.gain = 0.7 + 0.7 * uni(rng);
     s.offset = (uni(rng) - 0.5) * 0.4 * 255.0;
     s.truth = Eigen::Vector2d(s.b.x - s.a.x, s.b.y - s.a.y) - s.sub;
-    s.predicted = s.truth + Eigen::Vector2d(120.0 * (uni(rng) - 0.5), 120.0 * (uni(rng) - 0.5));
+    const double predicted_y = 120.0 * (uni(rng) - 0.5);
+    s.predicted = s.truth + Eigen::Vector2d(120.0 * (uni(rng) - 0.5), predicted_y);
     scenes.push_back(std::move(s));
   }
   return scenes;

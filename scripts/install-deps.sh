@@ -10,7 +10,7 @@ packages=(
   libgeographiclib-dev libopencv-dev libeigen3-dev libceres-dev
   libgtest-dev libgmock-dev nlohmann-json3-dev libzstd-dev libtiff-dev
   python3-numpy python3-matplotlib pybind11-dev python3-pytest
-  clang libclang-rt-14-dev  # scripts/fuzz.sh: clang++ with libFuzzer and the sanitizers
+  clang libclang-rt-14-dev  # clang++ with libFuzzer and the sanitizers: fuzz.sh, sanitize.sh, tsan.sh
 )
 if [[ "${1:-}" == "--with-qgis" || "${IRMOSAIC_WITH_QGIS:-0}" == "1" ]]; then
   packages+=(python3-qgis qgis-providers)

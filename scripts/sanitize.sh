@@ -4,8 +4,9 @@
 # any sanitizer report or test failure. CI runs it (.ci/run); docs/reliability.md says more.
 # Usage: scripts/sanitize.sh [asan|tsan|all]        (default all)
 #
-# Cost: the ASan build is compiled at -O1 (-g1 for line numbers in reports) without the
-# benchmarks; every test program, Python test and QGIS test is built and run.
+# Cost: the ASan build is compiled by Clang at -O1 (-g1 for line numbers in reports) without the
+# benchmarks; every test program, Python test and QGIS test is built and run. Clang, not GCC:
+# the same build took 266 s instead of 490 s on 2 cores (session 44, docs/reliability.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 what="${1:-all}"
@@ -13,7 +14,12 @@ what="${1:-all}"
 run_asan() {
   local build="${ASAN_BUILD_DIR:-build-asan}"
   local start=$SECONDS
-  cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+  # A folder configured by another compiler (GCC before session 44) is made again.
+  if [[ -f "$build/CMakeCache.txt" ]] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*clang++' \
+    "$build/CMakeCache.txt"; then
+    rm -rf "$build"
+  fi
+  cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER=clang++ \
     -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="-O1 -g1" -DIRMOSAIC_SANITIZE=ON -DIRMOSAIC_WERROR=ON \
     -DIRMOSAIC_BUILD_BENCH=OFF >/dev/null
   cmake --build "$build" -j2
@@ -60,7 +66,8 @@ run_asan() {
     status=1
   # libstdc++ is preloaded after the ASan runtime: python3 does not link it, and without it the
   # runtime's __cxa_throw interceptor finds no real __cxa_throw when PROJ throws inside QGIS.
-  LD_PRELOAD="$(gcc -print-file-name=libasan.so) $(gcc -print-file-name=libstdc++.so)" \
+  # Clang's shared ASan runtime, the one the build's programs link (CMakeLists.txt).
+  LD_PRELOAD="$(clang++ -print-file-name="libclang_rt.asan-$(uname -m).so") $(gcc -print-file-name=libstdc++.so)" \
     ASAN_OPTIONS="detect_leaks=0:abort_on_error=1" \
     ctest --test-dir "$build" --output-on-failure -j2 --timeout 900 -R "$hosted" -E "$plain_only" || status=1
   echo "sanitize: asan+ubsan tests $((SECONDS - start)) s"

@@ -10,7 +10,13 @@ build_dir=${BUILD_DIR:-build-tsan}
 # -O1 -g1 (line tables only), as the ASan build: on this 2-core machine the TSan build of the
 # library and map_fusion_test took 128 s instead of ~215 s at -O2 -g, and the run 64 s against
 # 62 s (session 6, docs/reliability.md).
-cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+# Clang, as the ASan build (scripts/sanitize.sh): it compiles in less time than GCC. A folder
+# configured by another compiler (GCC before session 44) is made again.
+if [[ -f "$build_dir/CMakeCache.txt" ]] && ! grep -q '^CMAKE_CXX_COMPILER:[A-Z]*=.*clang++' \
+  "$build_dir/CMakeCache.txt"; then
+  rm -rf "$build_dir"
+fi
+cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER=clang++ \
   -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="-O1 -g1" -DIRMOSAIC_TSAN=ON -DIRMOSAIC_BUILD_BENCH=OFF >/dev/null
 targets=(map_fusion_test helper_threads_test tile_store_test)
 [[ "${1:-}" == full ]] && targets+=(mosaicker_test)

@@ -153,8 +153,10 @@ FlightSimulator::FlightSimulator(SynthOptions options) : options_(std::move(opti
     Stream rng(options_.seed, kDead, 0);
     const int count = static_cast<int>(std::lround(s.dead_pixel_fraction * cam.width * cam.height));
     for (int i = 0; i < count; ++i) {
-      dead_pixels_.emplace_back(static_cast<int>(rng.Bits() % (cam.width * cam.height)),
-                                static_cast<int>(rng.Bits() & 1));
+      // Two statements: the order of a call's arguments is unspecified (GCC takes the last
+      // first, Clang the first), and the simulator draws the same pixels whatever the compiler.
+      const int hot = static_cast<int>(rng.Bits() & 1);
+      dead_pixels_.emplace_back(static_cast<int>(rng.Bits() % (cam.width * cam.height)), hot);
     }
   }
   if (s.noise) {

@@ -39,7 +39,9 @@ std::array<Eigen::Vector2d, 4> RandomQuad(std::mt19937* rng, int w, int h) {
   const std::array<Eigen::Vector2d, 4> corners = {
       Eigen::Vector2d(-320.5, -256.5), Eigen::Vector2d(319.5, -256.5),
       Eigen::Vector2d(319.5, 255.5), Eigen::Vector2d(-320.5, 255.5)};
-  const Eigen::Vector2d centre((unit(*rng) * 1.4 - 0.2) * w, (unit(*rng) * 1.4 - 0.2) * h);
+  // One draw a statement, y first: a call's argument order is unspecified.
+  const double centre_y = (unit(*rng) * 1.4 - 0.2) * h;
+  const Eigen::Vector2d centre((unit(*rng) * 1.4 - 0.2) * w, centre_y);
   std::array<Eigen::Vector2d, 4> quad;
   for (int k = 0; k < 4; ++k) {
     const Eigen::Vector3d p = m * corners[k].homogeneous();
@@ -54,7 +56,8 @@ TEST(FeatherWeightTest, VectorPathsOverEachRowsSpanEqualTheScalarReference) {
   std::uniform_int_distribution<int> side(1, 900);
   int compared = 0, positive = 0;
   for (int trial = 0; trial < 300; ++trial) {
-    const cv::Size size(side(rng), side(rng) * 3 / 4 + 1);
+    const int height = side(rng) * 3 / 4 + 1;  // Drawn first (the same sizes for every compiler).
+    const cv::Size size(side(rng), height);
     const std::array<Eigen::Vector2d, 4> quad = RandomQuad(&rng, size.width, size.height);
     cv::Mat mask = FilledMask(size, quad);
     if (trial % 3 == 0) {

@@ -107,8 +107,12 @@ inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t s
           continue;
         }
         if (base.index == corrupt.first && templ.index == corrupt.second) pb.x() += corrupt_px;
-        m.template_points.push_back(pt + Eigen::Vector2d(noise(*rng), noise(*rng)));
-        m.base_points.push_back(pb + Eigen::Vector2d(noise(*rng), noise(*rng)));
+        // One draw a statement, y first: a call's argument order is unspecified, and every
+        // compiler must draw the same ties.
+        const double ty = noise(*rng);
+        m.template_points.push_back(pt + Eigen::Vector2d(noise(*rng), ty));
+        const double by = noise(*rng);
+        m.base_points.push_back(pb + Eigen::Vector2d(noise(*rng), by));
       }
     }
     m.ok = m.base_points.size() >= 8;

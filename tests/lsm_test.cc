@@ -161,7 +161,9 @@ TEST(LsmOnAnalyticTexture, BothMethodsRecoverAKnownAffineAndAgree) {
   double worst_fast = 0, worst_trad = 0, worst_gap = 0, worst_affine = 0;
   for (int i = 0; i < 12; ++i) {
     const Eigen::Vector2d p(100 + 25 * (i % 4), 100 + 40 * (i / 4));
-    const Eigen::Vector2d c = p + Eigen::Vector2d(3.0 + frac(rng), -2.0 + frac(rng));
+    // One draw a statement, y first: a call's argument order is unspecified.
+    const double cy = -2.0 + frac(rng);
+    const Eigen::Vector2d c = p + Eigen::Vector2d(3.0 + frac(rng), cy);
     // 1 deg of rotation and 1 % of scale: the residual distortion after orthorectification.
     const double angle = 0.0175 * frac(rng) * 2, scale = 1.0 + 0.02 * frac(rng);
     Eigen::Matrix2d a;
@@ -206,7 +208,8 @@ TEST(LsmVectorPaths, Avx2AndBaselineWarpsGiveIdenticalMatches) {
     LsmMatcher matcher(options);
     for (int i = 0; i < 8; ++i) {
       const Eigen::Vector2d p(90 + 30 * (i % 4), 100 + 60 * (i / 4));
-      const Eigen::Vector2d c = p + Eigen::Vector2d(2.0 + frac(rng), -1.0 + frac(rng));
+      const double cy = -1.0 + frac(rng);  // One draw a statement, y first (as above).
+      const Eigen::Vector2d c = p + Eigen::Vector2d(2.0 + frac(rng), cy);
       const double angle = 0.02 * frac(rng), scale = 1.0 + 0.03 * frac(rng);
       Eigen::Matrix2d a;
       a << scale * std::cos(angle), -scale * std::sin(angle), scale * std::sin(angle),

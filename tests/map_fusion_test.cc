@@ -488,13 +488,16 @@ TEST(MapFusionTest, OneBlockPerPairGivesEachTiesRobustCostGradientAndJacobian) {
   for (int trial = 0; trial < 120; ++trial) {
     const Eigen::Matrix3d ha = RandomPlacement(rng);
     Eigen::Matrix3d hb = ha;  // Overlapping frames: b shifted and turned a little against a.
-    hb.col(2) += Eigen::Vector3d(300.0 * noise(rng), 200.0 * noise(rng), 0.0);
+    const double shift_y =
+        200.0 * noise(rng);  // One draw a statement: the same for every compiler.
+    hb.col(2) += Eigen::Vector3d(300.0 * noise(rng), shift_y, 0.0);
     const double inv_sigma = 1.0 / (0.1 + std::abs(noise(rng)));
     const fusion::TieLoss loss{0.05 + 0.95 * unit(rng), trial % 3 == 0 ? 0.0 : 3.0};
     const int count = 1 + trial % 24;
     std::vector<Eigen::Vector2d> pa, pb;
     for (int t = 0; t < count; ++t) {
-      pa.emplace_back(pixel_x(rng), pixel_y(rng));
+      const double y = pixel_y(rng);
+      pa.emplace_back(pixel_x(rng), y);
       // The tie's partner where b's placement puts a's point, off by 0.02 to 50 sigma.
       const Eigen::Vector2d on_mosaic = ApplyHomography(ha, pa.back());
       const double off = 0.02 * std::pow(2500.0, unit(rng)) / inv_sigma;
@@ -653,8 +656,10 @@ TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
             pb.y() > s.camera.height - 8) {
           continue;
         }
-        m.template_points.emplace_back(x + noise(rng), y + noise(rng));
-        m.base_points.emplace_back(pb.x() + noise(rng), pb.y() + noise(rng));
+        const double ty = y + noise(rng);  // One draw a statement (argument order is unspecified).
+        m.template_points.emplace_back(x + noise(rng), ty);
+        const double by = pb.y() + noise(rng);
+        m.base_points.emplace_back(pb.x() + noise(rng), by);
       }
     }
     m.ok = m.base_points.size() >= 8;

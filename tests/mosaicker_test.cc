@@ -307,8 +307,17 @@ TEST(MosaickerApiTest, AnEmptyPosTrackNeedsTheOriginAndGsd) {
   EXPECT_THROW(Mosaicker(options, sim.camera(), PosTrack()), InputError);
 }
 
-// Under a sanitizer, its own allocator replaces glibc's, whose figures the test reads.
-#if defined(__GLIBC__) && !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__)
+// Under a sanitizer, its own allocator replaces glibc's, whose figures the test reads. GCC
+// says so by __SANITIZE_ADDRESS__ / __SANITIZE_THREAD__, Clang 14 (the sanitize build's
+// compiler) only by __has_feature.
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+#define IRMOSAIC_UNDER_SANITIZER 1
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
+#define IRMOSAIC_UNDER_SANITIZER 1
+#endif
+#endif
+#if defined(__GLIBC__) && !defined(IRMOSAIC_UNDER_SANITIZER)
 // MosaickerOptions::tune_heap: once a Mosaicker is made, a 24 MiB buffer (an image-sized one
 // is a few MiB; glibc's own threshold starts at 128 KiB) comes from the heap, not a mapping of
 // its own, and freeing it leaves the heap as large as it was (no trim on free: the next buffer

@@ -268,7 +268,9 @@ TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
     int compared = 0;
     for (const cv::Matx33d& m : maps) {
       for (int width = 1; width <= 37; ++width) {
-        const cv::Matx33d shift(1, 0, offset(rng), 0, 1, offset(rng) * 0.7, 0, 0, 1);
+        // One draw a statement, y first: a call's argument order is unspecified.
+        const double shift_y = offset(rng) * 0.7;
+        const cv::Matx33d shift(1, 0, offset(rng), 0, 1, shift_y, 0, 0, 1);
         cv::Mat fast(3, width, depth), scalar(3, width, depth);
         ASSERT_TRUE(warp::WarpBilinear(src, m * shift, &fast));
         ASSERT_TRUE(warp::WarpBilinearScalar(src, m * shift, &scalar));

@@ -65,9 +65,12 @@ inline SyntheticPair MakePair(const cv::Mat& source, const PairDegradation& d, b
                                         : Eigen::Vector2d(0.0, h * (1.0 - overlap));
   // Attitude error: rotation about the camera axes through the principal point.
   const double k = M_PI / 180.0 * d.attitude_error_deg;
-  const Eigen::Matrix3d rotation = (Eigen::AngleAxisd(k * unit(*rng), Eigen::Vector3d::UnitZ()) *
-                                    Eigen::AngleAxisd(k * unit(*rng), Eigen::Vector3d::UnitY()) *
-                                    Eigen::AngleAxisd(k * unit(*rng), Eigen::Vector3d::UnitX()))
+  // One draw a statement, x first: the operands of * are evaluated in an unspecified order
+  // (GCC took the last first), and every compiler must draw the same pairs.
+  const double about_x = k * unit(*rng), about_y = k * unit(*rng), about_z = k * unit(*rng);
+  const Eigen::Matrix3d rotation = (Eigen::AngleAxisd(about_z, Eigen::Vector3d::UnitZ()) *
+                                    Eigen::AngleAxisd(about_y, Eigen::Vector3d::UnitY()) *
+                                    Eigen::AngleAxisd(about_x, Eigen::Vector3d::UnitX()))
                                        .toRotationMatrix();
   Eigen::Matrix3d camera;
   camera << 2400, 0, w / 2.0, 0, 2400, h / 2.0, 0, 0, 1;
@@ -119,7 +122,8 @@ inline SyntheticPair MakePair(const cv::Mat& source, const PairDegradation& d, b
   pair.overlap_in_template = cv::Rect2d(x0, y0, x1 - x0, y1 - y0);
   const Eigen::Vector2d centre(0.5 * (x0 + x1), 0.5 * (y0 + y1));
   const Eigen::Vector2d local = (truth * centre.homogeneous()).hnormalized() - centre;
-  pair.prior_offset = local + d.prior_error_px * Eigen::Vector2d(unit(*rng), unit(*rng));
+  const double prior_y = unit(*rng);  // Drawn first, as above.
+  pair.prior_offset = local + d.prior_error_px * Eigen::Vector2d(unit(*rng), prior_y);
   return pair;
 }
 

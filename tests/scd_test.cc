@@ -87,7 +87,10 @@ TEST(ScdTest, RecoversSubPixelShifts) {
     for (int trial = 0; trial < 8; ++trial) {
       const cv::Rect a(20, 20, 300, 240);
       const cv::Rect b = a + cv::Point(150 + trial * 7, 100 - trial * 9);
-      const Pair p = CropPair(image, a, b, {frac(rng), frac(rng)}, {frac(rng), frac(rng)});
+      // The template's shift drawn first: a call's arguments are evaluated in an unspecified
+      // order, and every compiler must draw the same shifts.
+      const Eigen::Vector2d templ_shift{frac(rng), frac(rng)};
+      const Pair p = CropPair(image, a, b, {frac(rng), frac(rng)}, templ_shift);
       const ScdResult r = matcher.Match(p.base, cv::Mat(), p.templ, cv::Mat(),
                                         p.truth + Eigen::Vector2d(-40, 35), 64.0);
       ASSERT_TRUE(r.ok()) << file << ": " << r.reason;
@@ -255,7 +258,10 @@ TEST(ScdTest, FifteenToTwentyFivePercentOverlapAtPsnr20) {
   for (const std::string& file : frames) {
     const cv::Mat frame = LoadFloat(file);
     for (int k = 0; k < 6; ++k) {
-      const Eigen::Vector2d sub(uni(rng) - 0.5, uni(rng) - 0.5);
+      // One draw a statement, y first (a call's argument order is unspecified; every
+      // compiler draws the same scenes).
+      const double sub_y = uni(rng) - 0.5;
+      const Eigen::Vector2d sub(uni(rng) - 0.5, sub_y);
       const double gain = 0.6 + 0.8 * uni(rng), offset = (uni(rng) - 0.5) * 0.6 * 255.0;
       cv::Mat noise(frame.size(), CV_32F), ortho_b, ortho_t, mask_b, mask_t;
       noise_rng.fill(noise, cv::RNG::NORMAL, 0.0, noise_std);
@@ -267,12 +273,10 @@ TEST(ScdTest, FifteenToTwentyFivePercentOverlapAtPsnr20) {
       cv::Rect a, b;
       double overlap = 0.0;
       for (int attempt = 0; attempt < 5000; ++attempt) {
-        a = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)),
-                               int(uni(rng) * (canvas.height - size.height))),
-                     size);
-        b = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)),
-                               int(uni(rng) * (canvas.height - size.height))),
-                     size);
+        const int ay = int(uni(rng) * (canvas.height - size.height));
+        a = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)), ay), size);
+        const int by = int(uni(rng) * (canvas.height - size.height));
+        b = cv::Rect(cv::Point(int(uni(rng) * (canvas.width - size.width)), by), size);
         p.base_mask = mask_b(a) & RandomFootprint(size, &rng);
         p.templ_mask = mask_t(b) & RandomFootprint(size, &rng);
         overlap = ValidOverlap(p, b.tl() - a.tl());
@@ -285,7 +289,8 @@ TEST(ScdTest, FifteenToTwentyFivePercentOverlapAtPsnr20) {
       p.base.setTo(0.0f, ~p.base_mask);
       p.templ.setTo(0.0f, ~p.templ_mask);
       p.truth = Eigen::Vector2d(b.x - a.x, b.y - a.y) - sub;
-      const Eigen::Vector2d pose_error(120.0 * (uni(rng) - 0.5), 120.0 * (uni(rng) - 0.5));
+      const double pose_error_y = 120.0 * (uni(rng) - 0.5);
+      const Eigen::Vector2d pose_error(120.0 * (uni(rng) - 0.5), pose_error_y);
       const ScdResult r =
           matcher.Match(p.base, p.base_mask, p.templ, p.templ_mask, p.truth + pose_error, 64.0);
       ++cases;
