@@ -30,9 +30,18 @@
 #include "helper_threads.h"
 #include "image_spill.h"
 #include "irmosaic/frame_geometry.h"
+#include "map_fusion_testing.h"
 #include "thread_priority.h"
 
 namespace irmosaic {
+namespace fusion_testing {
+namespace {
+std::atomic<SolveSnapshotHook> g_solve_snapshot_hook{nullptr};
+std::atomic<SettledPaintHook> g_settled_paint_hook{nullptr};
+}  // namespace
+void SetSolveSnapshotHook(SolveSnapshotHook hook) { g_solve_snapshot_hook.store(hook); }
+void SetSettledPaintHook(SettledPaintHook hook) { g_settled_paint_hook.store(hook); }
+}  // namespace fusion_testing
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -567,6 +576,7 @@ class MapFusion::Impl {
     FramePlacement painting = placement;
     for (;;) {
       Render(image, frame->data.image_clip, painting, renderer);
+      if (const auto hook = fusion_testing::g_settled_paint_hook.load()) hook(frame->data.index);
       std::lock_guard<std::mutex> records(records_mu_);
       {
         std::lock_guard<std::mutex> lock(mu_);
@@ -989,6 +999,10 @@ class MapFusion::Impl {
       }
     } read_hold{this};
     const size_t first_slot = frames.front()->slot;
+    if (const auto hook = fusion_testing::g_solve_snapshot_hook.load();
+        hook && !final_solve && last_slot == SIZE_MAX) {
+      hook(frames.front()->data.index, frames.back()->data.index);
+    }
     std::map<size_t, std::array<double, 8>> delta;
     for (const auto& [slot, placement] : current) delta[slot].fill(0.0);
 

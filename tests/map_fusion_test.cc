@@ -19,6 +19,7 @@
 #include <thread>
 
 #include "../src/fusion_cost.h"
+#include "../src/map_fusion_testing.h"
 #include "fusion_sweep.h"
 #include "irmosaic/frame_geometry.h"
 
@@ -1094,6 +1095,126 @@ TEST(MapFusionTest, FramesMovedByASolveTheCallerOutranAreRepaintedThere) {
       static_cast<long long>(stats.settled_repainted_after_solve));
   ASSERT_GE(stats.solves, 10);
   EXPECT_EQ(over, 0);
+  EXPECT_EQ(stats.settled_left_lagging, 0);
+}
+
+// The other race of that hand-over (session 43), made to happen on every run by the fusion's
+// test seams (src/map_fusion_testing.h): a solve's snapshot holds frame F; the caller pushes
+// until F leaves the fusion with its paint lagging, and Push re-renders it at the placement it
+// reads then; the solve publishes F's new placement while that paint is under way (the seam in
+// Push's re-render releases the held solve and waits for its publish). Push must then paint F
+// again at the new placement, and its record must come last: the frame ends on disk exactly
+// where the solution puts it.
+struct HeldSolveRace {
+  std::mutex mu;
+  std::condition_variable cv;
+  MapFusion* fusion = nullptr;
+  bool armed = false;    // The next background solve is held at its snapshot.
+  bool holding = false;  // Held now, its frames [first, last].
+  bool released = false;
+  int64_t first = -1, last = -1;
+  int64_t straddled = -1;  // The frame whose settled paint the held solve's publish straddled.
+  bool published = false;  // The held solve published before that paint's check.
+};
+HeldSolveRace* g_held_solve_race = nullptr;
+
+void HoldTheArmedSolve(int64_t first, int64_t last) {
+  HeldSolveRace& race = *g_held_solve_race;
+  std::unique_lock<std::mutex> lock(race.mu);
+  if (!race.armed) return;
+  race.armed = false;
+  race.holding = true;
+  race.first = first;
+  race.last = last;
+  // Released by a settled paint of one of its frames, or given up after 60 s (the test fails).
+  race.cv.wait_for(lock, std::chrono::seconds(60), [&] { return race.released; });
+  race.holding = false;
+}
+
+void PublishTheHeldSolveDuringThisPaint(int64_t index) {
+  HeldSolveRace& race = *g_held_solve_race;
+  int64_t solves = 0;
+  {
+    std::lock_guard<std::mutex> lock(race.mu);
+    if (!race.holding || race.released || index < race.first || index > race.last) return;
+    solves = race.fusion->stats().solves;
+    race.released = true;
+    race.straddled = index;
+  }
+  race.cv.notify_all();
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (race.fusion->stats().solves == solves && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  std::lock_guard<std::mutex> lock(race.mu);
+  race.published = race.fusion->stats().solves > solves;
+}
+
+TEST(MapFusionTest, ASettledPaintASolvePublishesDuringIsMadeAgainAtTheNewPlacement) {
+  const Sweep s = MakeSweep(200, 6, 2.0, 0.3, 43);
+  FusionOptions options;
+  options.window_frames = 16;
+  options.short_window_frames = 0;
+  options.solve_every_frames = 4;
+  options.max_rerenders_per_solve = 1;  // Leaves frames lagging as they leave.
+  options.compensate_gain = false;
+  options.rerender_settled_frames = true;
+  LastPaintSink sink;
+  MapFusion fusion(options, s.camera, IdealRegistrar(s, 0.2, 17), &sink);
+  HeldSolveRace race;
+  race.fusion = &fusion;
+  g_held_solve_race = &race;
+  struct Unset {
+    ~Unset() {
+      fusion_testing::SetSolveSnapshotHook(nullptr);
+      fusion_testing::SetSettledPaintHook(nullptr);
+    }
+  } unset;
+  fusion_testing::SetSolveSnapshotHook(&HoldTheArmedSolve);
+  fusion_testing::SetSettledPaintHook(&PublishTheHeldSolveDuringThisPaint);
+  const cv::Mat image(s.camera.height, s.camera.width, CV_16U, cv::Scalar(1000));
+  int64_t i = 0;
+  // 48 frames with the optimizer keeping up (each due solve awaited), then the next solve held
+  // while the caller runs on.
+  for (; i < 48; ++i) {
+    const int64_t solves = fusion.stats().solves;
+    const bool due = (i + 1) % options.solve_every_frames == 0;
+    fusion.Push(SweepFrame(s, i, image));
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+    while (due && fusion.stats().solves == solves && std::chrono::steady_clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+  }
+  {
+    std::lock_guard<std::mutex> lock(race.mu);
+    race.armed = true;
+  }
+  for (; i < 200; ++i) fusion.Push(SweepFrame(s, i, image));
+  fusion.Finish();
+  const FusionStats stats = fusion.stats();
+  std::map<int64_t, Eigen::Matrix3d> final_placement;
+  for (const FramePlacement& p : fusion.Placements())
+    final_placement[p.index] = p.mosaic_from_image;
+  std::printf(
+      "held solve of frames %lld-%lld: frame %lld's settled paint straddled its publish; %lld "
+      "painted again after a solve moved the frame; that frame's last record %.2e px from its "
+      "final placement\n",
+      static_cast<long long>(race.first), static_cast<long long>(race.last),
+      static_cast<long long>(race.straddled),
+      static_cast<long long>(stats.settled_repainted_after_solve),
+      race.straddled >= 0
+          ? CornerLagPx(sink.last.at(race.straddled), final_placement.at(race.straddled), s.camera)
+          : -1.0);
+  ASSERT_GE(race.straddled, 0) << "no frame of the held solve left the fusion lagging";
+  ASSERT_TRUE(race.published) << "the held solve did not publish during the paint";
+  EXPECT_GE(stats.settled_repainted_after_solve, 1);
+  EXPECT_LT(CornerLagPx(sink.last.at(race.straddled), final_placement.at(race.straddled), s.camera),
+            1e-9);
+  for (const auto& [index, placed] : final_placement) {
+    EXPECT_LE(CornerLagPx(sink.last.at(index), placed, s.camera),
+              options.settled_rerender_threshold_px + 1e-3)
+        << "frame " << index;
+  }
   EXPECT_EQ(stats.settled_left_lagging, 0);
 }
 
