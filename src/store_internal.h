@@ -262,6 +262,9 @@ void CreateFramesGpkg(const std::filesystem::path& path, const std::string& crs_
 // the cost follows the change, not the file; creates the file first if it is missing.
 void WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,
                      const std::vector<FrameRecord>& changed, bool durable);
+// How many times WriteFramesGpkg found frames.gpkg locked by another connection for a moment
+// and tried again (this process, since it started).
+int64_t FramesGpkgBusyRetries();
 // Back to SQLite's rollback journal when the store closes: a finished frames.gpkg is one file,
 // readable from read-only media (a WAL-mode file needs its -shm beside it).
 void SettleFramesGpkg(const std::filesystem::path& path);

@@ -2305,6 +2305,10 @@ TEST(TileStoreTest, ConcurrentReaderProcessNeverSeesAnErrorOrATornTile) {
   waitpid(reader, &status, 0);
   int reads = 0, problems = -1;
   std::istringstream(report) >> reads >> problems;
+  // Writes of frames.gpkg that found it locked by the reader for a moment and went again
+  // (store::WriteFramesGpkg): 3 runs in 60 failed so under load before session 44.
+  std::printf("%d reads beside the writer; frames.gpkg found locked and written again %lld times\n",
+              reads, static_cast<long long>(store::FramesGpkgBusyRetries()));
   EXPECT_GE(reads, 10) << "the reader must have overlapped the writer: " << report;
   EXPECT_EQ(problems, 0) << report;
 }
