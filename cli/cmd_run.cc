@@ -235,6 +235,13 @@ int RunRun(int argc, char** argv) {
                 << " frames keep an earlier placement (their images could not be read back)\n";
     }
   }
+  const int64_t frames_gpkg_locked =
+      mosaicker.store() ? mosaicker.store()->stats().frames_gpkg_locked : 0;
+  if (frames_gpkg_locked > 0) {
+    std::cerr << "run: warning: another program held frames.gpkg locked " << frames_gpkg_locked
+              << " times when the footprints were due; they waited in manifest.json "
+                 "(frames.pending) and reached frames.gpkg with a later update\n";
+  }
   std::cerr << "run: store " << options.store_path
             << " (open mosaic.vrt or irmosaic.qlr in QGIS; irmosaic_live.qlr, with the IRMOSAIC "
                "plug-in, shows it grow live)\n";
@@ -265,6 +272,7 @@ int RunRun(int argc, char** argv) {
         {"mean_seam_lag_px", s.fusion.mean_seam_lag_px},
         {"mean_painted_lag_px", s.fusion.mean_painted_lag_px}}},
       {"pairs", {{"tried", s.fusion.pairs_tried}, {"ok", s.fusion.pairs_ok}}},
+      {"frames_gpkg_locked", frames_gpkg_locked},
       {"held_images",
        {{"in_memory_limit", options.images_in_memory},
         {"file_mib", static_cast<double>(s.fusion.spill_file_bytes) / 1048576.0},

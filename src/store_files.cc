@@ -1983,34 +1983,41 @@ std::string TryWriteFrames(const fs::path& path, const std::vector<FrameRecord>&
 }
 
 std::atomic<int64_t> g_frames_gpkg_busy_retries{0};
+std::atomic<int> g_closing_lock_budget_ms{kFramesGpkgClosingLockBudgetMs};
 
 }  // namespace
 
 int64_t FramesGpkgBusyRetries() { return g_frames_gpkg_busy_retries.load(); }
+int FramesGpkgLiveLockBudgetMs() { return 250; }
+int FramesGpkgClosingLockBudgetMs() { return g_closing_lock_budget_ms.load(); }
+void SetFramesGpkgClosingLockBudgetMsForTesting(int ms) { g_closing_lock_budget_ms.store(ms); }
 
-void WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
-                     const std::vector<FrameRecord>& changed, bool durable) {
+bool WriteFramesGpkg(const fs::path& path, const std::string& crs_wkt,
+                     const std::vector<FrameRecord>& changed, bool durable, int locked_budget_ms) {
   if (!fs::exists(path)) CreateFramesGpkg(path, crs_wkt, durable);
-  if (changed.empty()) return;
+  if (changed.empty()) return true;
   // In place, one SQLite transaction in write-ahead-log mode: a reader sees the records of the
   // last commit, never part of one, and a kill -9 mid-transaction leaves the last commit (SQLite
   // rolls the rest back when the file is next opened). The work is the changed rows and their
   // index pages, not a copy of a file that grows with the flight. "NORMAL" syncs at
   // checkpoints only (safe against a crash of this process; durable adds power loss).
-  // A reader opening or closing the file (QGIS, the GDAL plug-in, another process's
-  // FrameRecords) can hold a lock for a moment that SQLite reports as "database is locked"
-  // at once, without waiting in GDAL's 5 s busy timeout: under load, 3 runs in 60 of
-  // TileStoreTest.ConcurrentReaderProcessNeverSeesAnErrorOrATornTile failed so at
-  // StartTransaction's DROP TRIGGER (session 44). The transaction commits whole or not at
-  // all, so it is tried again, for up to about 5 s, before the write is called failed.
+  // Another connection can hold the file locked: a reader closing it last (SQLite then
+  // checkpoints under an exclusive lock), or a program writing to it. GDAL's transaction starts
+  // with a DROP TRIGGER after reading the schema, and SQLite answers such an upgrade from a read
+  // to a write "database is locked" at once, without waiting in GDAL's 5 s busy timeout: under
+  // load 3 runs in 60 of TileStoreTest.ConcurrentReaderProcessNeverSeesAnErrorOrATornTile
+  // failed so (session 44), and a lock held for seconds failed every attempt at once
+  // (session 45, TileStoreTest.AFramesGpkgLockedByAnotherProgramDefersItsRecordsNotThePublish).
+  // The transaction commits whole or not at all, so it is tried again, 2..100 ms apart.
   std::string why;
   int waited_ms = 0;
   for (int attempt = 0;; ++attempt) {
     why = TryWriteFrames(path, changed, durable);
-    if (why.empty()) return;
+    if (why.empty()) return true;
     const bool busy = why.find("database is locked") != std::string::npos ||
                       why.find("database is busy") != std::string::npos;
-    if (!busy || waited_ms >= 5000) break;
+    if (!busy) break;
+    if (waited_ms >= locked_budget_ms) return false;
     const int pause_ms = std::min(100, 2 << std::min(attempt, 6));
     std::this_thread::sleep_for(std::chrono::milliseconds(pause_ms));
     waited_ms += pause_ms;

@@ -259,12 +259,21 @@ bool CoveredPercentiles(const std::vector<const TileImage*>& tiles, double* lo, 
 // A new, empty frames.gpkg (built under a temporary name, renamed into place; WAL mode).
 void CreateFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt, bool durable);
 // Inserts or replaces `changed` in frames.gpkg in place, in one SQLite transaction (WAL mode), so
-// the cost follows the change, not the file; creates the file first if it is missing.
-void WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,
-                     const std::vector<FrameRecord>& changed, bool durable);
+// the cost follows the change, not the file; creates the file first if it is missing. While
+// another connection holds the file locked ("database is locked"), tries again for up to
+// `locked_budget_ms`, then returns false with nothing written (the caller keeps the records for
+// a later write); true once written. Any other failure throws OutputError.
+bool WriteFramesGpkg(const std::filesystem::path& path, const std::string& crs_wkt,
+                     const std::vector<FrameRecord>& changed, bool durable, int locked_budget_ms);
 // How many times WriteFramesGpkg found frames.gpkg locked by another connection for a moment
 // and tried again (this process, since it started).
 int64_t FramesGpkgBusyRetries();
+// How long a live publish (250 ms) and the closing one (10 s) try again while frames.gpkg is
+// locked (TileStore's writer). Tests shorten the closing wait.
+inline constexpr int kFramesGpkgClosingLockBudgetMs = 10000;
+int FramesGpkgLiveLockBudgetMs();
+int FramesGpkgClosingLockBudgetMs();
+void SetFramesGpkgClosingLockBudgetMsForTesting(int ms);
 // Back to SQLite's rollback journal when the store closes: a finished frames.gpkg is one file,
 // readable from read-only media (a WAL-mode file needs its -shm beside it).
 void SettleFramesGpkg(const std::filesystem::path& path);

@@ -549,7 +549,9 @@ struct TileStore::Impl {
   // it with the mutex released (FinishOverviewCycle).
   std::atomic<bool> closing{false};
   bool secondary_owed = false;  // Overviews or frames.gpkg were deferred by a publish.
-  bool closed = false;          // Writer joined: nothing more will be published.
+  // The closing publish found frames.gpkg locked past its wait: Close() says so.
+  bool frames_gpkg_locked_at_close = false;
+  bool closed = false;  // Writer joined: nothing more will be published.
   std::map<int64_t, Clock::time_point> request_time_of;
   std::deque<std::pair<int64_t, Clock::time_point>> published_at;  // The last 4096 publishes.
   int64_t published_at_dropped_through = 0;  // Newest generation dropped from published_at.
@@ -1240,11 +1242,10 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
   // The records frames.gpkg does not hold yet go in the manifest (frames.pending), so that the
   // generation names every frame it shows even if the process dies before frames.gpkg follows.
   // A publish that writes frames.gpkg writes all of them there first.
+  // A publish that finds frames.gpkg locked by another program puts the same list there.
   std::vector<FrameRecord> frames_pending;
-  if (!secondary) {
-    frames_pending.reserve(frames.size());
-    for (const auto& [index, record] : frames) frames_pending.push_back(record);
-  }
+  frames_pending.reserve(frames.size());
+  for (const auto& [index, record] : frames) frames_pending.push_back(record);
   secondary_owed = !secondary;
   int64_t frame_count = frame_times.count();
   if (frames_time_stale) {  // Records loaded at open, or one replaced with another time.
@@ -1332,11 +1333,17 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
     for (const TileImage& image : level0_top) top_images.push_back(&image);
     const bool range_changed = WidenDisplayRange(&next, top_images) || qlr_owed;
     // 4. Frames, then the index: overview VRTs, mosaic.vrt, manifest.json.
+    // Locked by another program past a short wait (a live publish must not stall on it; the
+    // closing one waits longer): the records go in the manifest and wait for the next update.
+    bool frames_written = false;
     if (secondary && (!frames_to_write.empty() || !fs::exists(root / "frames.gpkg"))) {
-      store::WriteFramesGpkg(root / "frames.gpkg", georef.crs_wkt, frames_to_write,
-                             options.durable);
-      report.frames_gpkg = true;
+      frames_written = store::WriteFramesGpkg(
+          root / "frames.gpkg", georef.crs_wkt, frames_to_write, options.durable,
+          closing ? store::FramesGpkgClosingLockBudgetMs() : store::FramesGpkgLiveLockBudgetMs());
+      report.frames_gpkg = frames_written;
+      report.frames_gpkg_locked = !frames_written;
     }
+    if (secondary && !report.frames_gpkg_locked) frames_pending.clear();
     next.frame_count = frame_count;
     next.time_min_s = time_min;
     next.time_max_s = time_max;
@@ -1408,10 +1415,18 @@ void TileStore::Impl::PublishOnce(int64_t generation, std::unique_lock<std::mute
       published_at.pop_front();
     }
     ++stats.publishes;
-    // Records now in frames.gpkg leave memory, unless put again since.
-    for (const FrameRecord& record : frames_to_write) {
-      const auto held = frames.find(record.index);
-      if (held != frames.end() && SameRecord(held->second, record)) frames.erase(held);
+    if (report.frames_gpkg_locked) {
+      // Still owed to frames.gpkg (the manifest holds them meanwhile).
+      for (auto& record : frames_to_write) frames_changed.push_back(record);
+      secondary_owed = true;
+      ++stats.frames_gpkg_locked;
+      if (closing) frames_gpkg_locked_at_close = true;
+    } else {
+      // Records now in frames.gpkg leave memory, unless put again since.
+      for (const FrameRecord& record : frames_to_write) {
+        const auto held = frames.find(record.index);
+        if (held != frames.end() && SameRecord(held->second, record)) frames.erase(held);
+      }
     }
     auto it = request_time_of.find(generation);
     if (it != request_time_of.end()) {
@@ -1975,6 +1990,14 @@ void TileStore::Close() {
     }
     s.sync_wake.notify_all();
     s.syncer.join();
+  }
+  if (error.empty() && s.frames_gpkg_locked_at_close) {
+    error = "cannot write " + (s.root / "frames.gpkg").string() + ": another program held it " +
+            "locked for " + std::to_string(store::FramesGpkgClosingLockBudgetMs()) +
+            " ms (\"database is locked\"); the last frames' records are in manifest.json " +
+            "(frames.pending), which readers of the store and a resume take. Fix: close the " +
+            "program that has frames.gpkg open for writing, then open the store with --resume " +
+            "(or TileStoreOptions::Mode::kResume) and close it to move them into frames.gpkg";
   }
   if (error.empty()) store::SettleFramesGpkg(s.root / "frames.gpkg");
   {

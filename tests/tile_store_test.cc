@@ -7,6 +7,7 @@
 #include <ogr_spatialref.h>
 #include <ogrsf_frmts.h>
 #include <signal.h>
+#include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -14,6 +15,7 @@
 
 #include <GeographicLib/Geodesic.hpp>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -2275,6 +2277,16 @@ std::string CheckStoreRead(const fs::path& dir, int tile_size) {
 
 TEST(TileStoreTest, ConcurrentReaderProcessNeverSeesAnErrorOrATornTile) {
   const fs::path dir = FreshDir("concurrent") / "s.irmosaic";
+  // The reader's count of reads, in memory shared with the writer: the writer publishes until
+  // the reader has read the store at least kReads times beside it (at least 30 generations, at
+  // most 3000), so a slow machine lengthens the test instead of failing it. Run as one
+  // process with the rest of the binary the reader got only 7 reads in 30 generations.
+  constexpr int kReads = 10;
+  auto* shared_reads =
+      static_cast<std::atomic<int>*>(mmap(nullptr, sizeof(std::atomic<int>), PROT_READ | PROT_WRITE,
+                                          MAP_SHARED | MAP_ANONYMOUS, -1, 0));
+  ASSERT_NE(shared_reads, MAP_FAILED);
+  new (shared_reads) std::atomic<int>(0);
   int fds[2];
   ASSERT_EQ(pipe(fds), 0);
   const pid_t reader = fork();
@@ -2283,11 +2295,11 @@ TEST(TileStoreTest, ConcurrentReaderProcessNeverSeesAnErrorOrATornTile) {
     GDALAllRegister();
     int reads = 0, problems = 0;
     std::string first_problem;
-    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
     while (!fs::exists(dir / "done") && std::chrono::steady_clock::now() < deadline) {
       if (!fs::exists(dir / "manifest.json")) continue;
       const std::string problem = CheckStoreRead(dir, 128);
-      ++reads;
+      shared_reads->store(++reads);
       if (!problem.empty() && problems++ == 0) first_problem = problem;
     }
     const std::string report =
@@ -2296,21 +2308,162 @@ TEST(TileStoreTest, ConcurrentReaderProcessNeverSeesAnErrorOrATornTile) {
     _exit(0);
   }
   close(fds[1]);
-  WriteGenerations(dir, TileStoreOptions::Mode::kCreate, 30);
+  int generations = 0;
+  {
+    TileStoreOptions options = Options(dir, 128);
+    auto store = TileStore::Open(options, Georef());
+    while (generations < 30 || (shared_reads->load() < kReads && generations < 3000)) {
+      const int64_t next = store->published_generation() + 1;
+      const int tiles = 2 + static_cast<int>(std::min<int64_t>(next / 3, 5));
+      PaintSquare(store.get(), {-128, -128}, 128 * tiles, 1000.0 + static_cast<double>(next));
+      store->PutFrameRecord(Footprint(next, "registered"));
+      store->WaitPublished(store->RequestPublish());
+      ++generations;
+    }
+    store->Close();
+  }
   std::ofstream(dir / "done") << "";
   std::string report(4096, '\0');
   report.resize(std::max<ssize_t>(0, read(fds[0], report.data(), report.size())));
   close(fds[0]);
   int status = 0;
   waitpid(reader, &status, 0);
+  munmap(shared_reads, sizeof(std::atomic<int>));
   int reads = 0, problems = -1;
   std::istringstream(report) >> reads >> problems;
   // Writes of frames.gpkg that found it locked by the reader for a moment and went again
   // (store::WriteFramesGpkg): 3 runs in 60 failed so under load before session 44.
-  std::printf("%d reads beside the writer; frames.gpkg found locked and written again %lld times\n",
-              reads, static_cast<long long>(store::FramesGpkgBusyRetries()));
-  EXPECT_GE(reads, 10) << "the reader must have overlapped the writer: " << report;
+  std::printf(
+      "%d reads beside the writer's %d generations; frames.gpkg found locked and written again "
+      "%lld times\n",
+      reads, generations, static_cast<long long>(store::FramesGpkgBusyRetries()));
+  EXPECT_GE(reads, kReads) << "the reader must have overlapped the writer: " << report;
   EXPECT_EQ(problems, 0) << report;
+}
+
+// Another program may hold frames.gpkg locked for seconds (a script's transaction, a GIS editing
+// the footprints). SQLite answers GDAL's transaction "database is locked" at once then, every
+// try (session 45: 55 tries in 5 s failed), and the live writer stopped the run. Now a live
+// publish waits a moment and puts the records in manifest.json (frames.pending) instead; they
+// reach frames.gpkg with a later update once the lock is gone. The closing publish waits
+// longer, then publishes the records in the manifest and Close() says what to do.
+TEST(TileStoreTest, AFramesGpkgLockedByAnotherProgramDefersItsRecordsNotThePublish) {
+  const fs::path dir = FreshDir("frames_locked") / "s.irmosaic";
+  const fs::path gpkg = dir / "frames.gpkg";
+  int go[2], told[2];
+  ASSERT_EQ(pipe(go), 0);
+  ASSERT_EQ(pipe(told), 0);
+  // The lock holder, forked before the store starts its threads: for each byte on `go` (the
+  // milliseconds to hold, in tenths of a second) it takes frames.gpkg's write lock with a
+  // transaction, says 'h', holds it, rolls back, closes the file and says 'r'.
+  const pid_t holder = fork();
+  if (holder == 0) {
+    close(go[1]);
+    close(told[0]);
+    GDALAllRegister();
+    char tenths = 0;
+    while (read(go[0], &tenths, 1) == 1) {
+      GDALDataset* ds = GDALDataset::Open(gpkg.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
+      char said = 'x';
+      CPLErrorReset();
+      if (ds != nullptr && ds->StartTransaction() == OGRERR_NONE) {
+        // A write in the transaction takes SQLite's write lock until the rollback.
+        ds->ExecuteSQL("UPDATE frames SET status = 'held by another process' WHERE fid = 1",
+                       nullptr, nullptr);
+        if (CPLGetLastErrorType() == CE_None) said = 'h';
+      }
+      if (write(told[1], &said, 1) != 1 || said != 'h') _exit(3);
+      std::this_thread::sleep_for(std::chrono::milliseconds(100 * tenths));
+      ds->RollbackTransaction();
+      GDALClose(ds);
+      said = 'r';
+      if (write(told[1], &said, 1) != 1) _exit(4);
+    }
+    _exit(0);
+  }
+  close(go[0]);
+  close(told[1]);
+  const auto lock_for = [&](int tenths_of_s) {
+    const char byte = static_cast<char>(tenths_of_s);
+    char said = 0;
+    return write(go[1], &byte, 1) == 1 && read(told[0], &said, 1) == 1 && said == 'h';
+  };
+  const auto released = [&] {
+    char said = 0;
+    return read(told[0], &said, 1) == 1 && said == 'r';
+  };
+  const auto gpkg_indices = [&] {
+    std::set<int64_t> indices;
+    for (const FrameRecord& r : store::ReadFramesGpkg(gpkg)) indices.insert(r.index);
+    return indices;
+  };
+  const auto pending_indices = [&] {
+    std::set<int64_t> indices;
+    for (const FrameRecord& r : store::ReadManifest(dir / "manifest.json").frames_pending) {
+      indices.insert(r.index);
+    }
+    return indices;
+  };
+
+  auto store = TileStore::Open(Options(dir), Georef());  // overview_interval_s 0: every publish.
+  store->PutFrameRecord(Footprint(0, "registered"));
+  store->WaitPublished(store->RequestPublish());
+  ASSERT_EQ(gpkg_indices(), std::set<int64_t>({0}));
+
+  // 1. A live publish while the lock is held (3 s): published, the record in the manifest.
+  ASSERT_TRUE(lock_for(30)) << "the second process could not lock frames.gpkg";
+  const int64_t retries_before = store::FramesGpkgBusyRetries();
+  store->PutFrameRecord(Footprint(1, "registered"));
+  EXPECT_NO_THROW(store->WaitPublished(store->RequestPublish()));
+  const std::set<int64_t> in_gpkg_while_locked = gpkg_indices();
+  const std::set<int64_t> pending_while_locked = pending_indices();
+  const int64_t retries = store::FramesGpkgBusyRetries() - retries_before;
+  ASSERT_TRUE(released());
+  std::printf("a publish under the lock tried frames.gpkg %lld times, then deferred it\n",
+              static_cast<long long>(retries + 1));
+  EXPECT_EQ(in_gpkg_while_locked, std::set<int64_t>({0})) << "the holder's lock did not hold";
+  EXPECT_EQ(pending_while_locked, std::set<int64_t>({1}));
+  EXPECT_GE(retries, 1);
+  EXPECT_EQ(store->stats().frames_gpkg_locked, 1);
+  // A reader of the store meanwhile: both records (frames.gpkg's and the manifest's).
+  EXPECT_EQ(TileStore::OpenReadOnly(dir.string())->FrameRecords().size(), 2u);
+  // The lock gone, the next publish moves the record into frames.gpkg.
+  store->PutFrameRecord(Footprint(2, "registered"));
+  store->WaitPublished(store->RequestPublish());
+  EXPECT_EQ(gpkg_indices(), std::set<int64_t>({0, 1, 2}));
+  EXPECT_TRUE(pending_indices().empty());
+
+  // 2. Closing while the lock is held past the closing wait (shortened to 0.3 s here): the
+  // records are published in the manifest and Close() throws, naming the file and the fix.
+  store::SetFramesGpkgClosingLockBudgetMsForTesting(300);
+  ASSERT_TRUE(lock_for(15));
+  store->PutFrameRecord(Footprint(3, "registered"));
+  std::string error;
+  try {
+    store->Close();
+  } catch (const OutputError& e) {
+    error = e.what();
+  }
+  store::SetFramesGpkgClosingLockBudgetMsForTesting(store::kFramesGpkgClosingLockBudgetMs);
+  const std::set<int64_t> pending_at_close = pending_indices();
+  ASSERT_TRUE(released());
+  EXPECT_NE(error.find("frames.gpkg"), std::string::npos) << error;
+  EXPECT_NE(error.find("locked"), std::string::npos) << error;
+  EXPECT_NE(error.find("Fix:"), std::string::npos) << error;
+  EXPECT_EQ(pending_at_close, std::set<int64_t>({3}));
+  // A resume takes them and its close writes them to frames.gpkg.
+  TileStoreOptions options = Options(dir);
+  options.mode = TileStoreOptions::Mode::kResume;
+  TileStore::Open(options, Georef())->Close();
+  EXPECT_EQ(gpkg_indices(), std::set<int64_t>({0, 1, 2, 3}));
+  EXPECT_TRUE(pending_indices().empty());
+  close(go[1]);  // The holder's read ends: it exits.
+  close(told[0]);
+  int status = 0;
+  waitpid(holder, &status, 0);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << "holder status " << status;
+  // The holder's rolled-back changes are nowhere.
+  for (const FrameRecord& r : store::ReadFramesGpkg(gpkg)) EXPECT_EQ(r.status, "registered");
 }
 
 TEST(TileStoreTest, KillNineMidPublishLeavesALoadableStoreThatResumes) {

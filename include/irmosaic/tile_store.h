@@ -56,8 +56,11 @@ struct PublishReport {
   bool overview_update = false, overview_update_early = false, overview_update_in_publish = false;
   int overview_tiles = 0;
   bool frames_gpkg = false;  // frames.gpkg written by this publish.
-  double index_ms = 0.0;     // Wall time in the index (VRTs, manifest.json).
-  double cpu_ms = 0.0;       // The writer's CPU time in this publish,
+  // frames.gpkg was due but another program held it locked past a short wait: its records went
+  // in manifest.json (frames.pending) instead, and the next update tries again.
+  bool frames_gpkg_locked = false;
+  double index_ms = 0.0;  // Wall time in the index (VRTs, manifest.json).
+  double cpu_ms = 0.0;    // The writer's CPU time in this publish,
   // and the time it waited for a CPU while runnable (Linux's /proc/thread-self/schedstat; 0
   // where not reported). The rest of the wall time it was blocked: on the disk, or on a lock.
   double run_queue_ms = 0.0;
@@ -238,7 +241,10 @@ class IRMOSAIC_EXPORT TileStore {
     // unchanged since it was written, or encoded (docs/store.md, "Writing tiles").
     int64_t blocks_copied = 0;
     int64_t blocks_encoded = 0;
-    int64_t syncs = 0;      // File system flushes (sync_interval_s) done.
+    int64_t syncs = 0;  // File system flushes (sync_interval_s) done.
+    // Updates of frames.gpkg put off because another program held it locked (PublishReport::
+    // frames_gpkg_locked); the records waited in manifest.json.
+    int64_t frames_gpkg_locked = 0;
     int64_t publishes = 0;  // Generations published by this process.
     // Of those: publishes that started bringing the overviews (and frames.gpkg) up to date,
     // by the clock (overview_interval_s) or early, when the level-0 tiles owed to them passed
