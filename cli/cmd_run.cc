@@ -238,9 +238,9 @@ int RunRun(int argc, char** argv) {
   const int64_t frames_gpkg_locked =
       mosaicker.store() ? mosaicker.store()->stats().frames_gpkg_locked : 0;
   if (frames_gpkg_locked > 0) {
-    std::cerr << "run: warning: another program held frames.gpkg locked " << frames_gpkg_locked
-              << " times when the footprints were due; they waited in manifest.json "
-                 "(frames.pending) and reached frames.gpkg with a later update\n";
+    std::cerr << "run: warning: another program held frames.gpkg locked at " << frames_gpkg_locked
+              << " of its updates; those footprints waited in "
+                 "manifest.json (frames.pending) and reached frames.gpkg with a later update\n";
   }
   std::cerr << "run: store " << options.store_path
             << " (open mosaic.vrt or irmosaic.qlr in QGIS; irmosaic_live.qlr, with the IRMOSAIC "
