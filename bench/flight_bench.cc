@@ -116,6 +116,7 @@ struct Tuning {
   double publish_interval_s = -1.0;
   double overview_interval_s = -1.0;
   int tile_size = -1;
+  std::string compression;  // MosaickerOptions::compression ("": the default).
   int max_rerenders_per_solve = -1;
   double rerender_threshold_px = -1.0;
   double settled_rerender_threshold_px = -1.0;  // FusionOptions::settled_rerender_threshold_px.
@@ -362,6 +363,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
     options.overview_interval_s = g_tuning.overview_interval_s;
   }
   if (g_tuning.tile_size > 0) options.tile_size = g_tuning.tile_size;
+  if (!g_tuning.compression.empty()) options.compression = g_tuning.compression;
   if (g_tuning.max_rerenders_per_solve >= 0) {
     options.fusion.max_rerenders_per_solve = g_tuning.max_rerenders_per_solve;
   }
@@ -784,6 +786,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
             {"publish_interval_s", options.publish_interval_s},
             {"overview_interval_s", options.overview_interval_s},
             {"tile_size", options.tile_size},
+            {"compression", options.compression},
             {"max_rerenders_per_solve", options.fusion.max_rerenders_per_solve},
             {"rerender_threshold_px", options.fusion.rerender_threshold_px},
             {"settled_rerender_threshold_px", options.fusion.settled_rerender_threshold_px},
@@ -1093,6 +1096,8 @@ int main(int argc, char** argv) {
       g_tuning.overview_interval_s = std::stod(value());
     } else if (a == "--tile-size") {
       g_tuning.tile_size = std::stoi(value());
+    } else if (a == "--compression") {
+      g_tuning.compression = value();
     } else if (a == "--max-rerenders") {
       g_tuning.max_rerenders_per_solve = std::stoi(value());
     } else if (a == "--rerender-threshold") {
@@ -1187,7 +1192,7 @@ int main(int argc, char** argv) {
              "[--max-pair-sigma PX] "
              "[--max-coarse-pair-sigma PX] [--wide-radius PX] "
              "[--optimizer-nice N] [--writer-nice N] [--sync-interval S] [--max-output-backlog S] "
-             "[--overview-interval S] [--tile-size N] "
+             "[--overview-interval S] [--tile-size N] [--compression ZSTD|DEFLATE|LZW|NONE] "
              "[--heap-trim-every N] [--heap-tuning 0|1] [--max-cached-tiles N] "
              "[--refresh-slice-tiles N] [--refresh-quiet-publishes N] "
              "[--images-in-memory N] "
