@@ -184,6 +184,7 @@ int RunRun(int argc, char** argv) {
   }
   SourceFrame frame;
   std::string problem;
+  int64_t locked_reported = 0;
   while (true) {
     const FrameSource::Status status = source->Next(&frame, &problem);
     if (status == FrameSource::Status::kEnd) {
@@ -200,6 +201,17 @@ int RunRun(int argc, char** argv) {
     const PushResult result = mosaicker.Push(frame.index, frame.time_s, frame.image);
     if (!result.placed()) std::cerr << "\nrun: warning: skipped " << result.reason << "\n";
     if (!result.warning.empty()) std::cerr << "\nrun: warning: " << result.warning << "\n";
+    // Said while it happens, not only in the summary: a program holding frames.gpkg locked
+    // (docs/store.md, "Publishing and atomicity") delays the footprints, not the mosaic.
+    if (done % 250 == 0 && mosaicker.store() != nullptr) {
+      const int64_t locked = mosaicker.store()->stats().frames_gpkg_locked;
+      if (locked > locked_reported) {
+        std::cerr << "\nrun: warning: another program holds "
+                  << (std::filesystem::path(options.store_path) / "frames.gpkg").string()
+                  << " locked; the footprints wait in manifest.json until it lets go\n";
+        locked_reported = locked;
+      }
+    }
     progress.Update(done);
   }
   mosaicker.SetReplay(false);
