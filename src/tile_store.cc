@@ -1995,9 +1995,9 @@ void TileStore::Close() {
     error = "cannot write " + (s.root / "frames.gpkg").string() + ": another program held it " +
             "locked for " + std::to_string(store::FramesGpkgClosingLockBudgetMs()) +
             " ms (\"database is locked\"); the last frames' records are in manifest.json " +
-            "(frames.pending), which readers of the store and a resume take. Fix: close the " +
-            "program that has frames.gpkg open for writing, then open the store with --resume " +
-            "(or TileStoreOptions::Mode::kResume) and close it to move them into frames.gpkg";
+            "(frames.pending), which a resume takes. Fix: close the program that has " +
+            "frames.gpkg open for writing, then resume the store (irmosaic run --resume, or " +
+            "TileStoreOptions::Mode::kResume) to move them into frames.gpkg";
   }
   if (error.empty()) store::SettleFramesGpkg(s.root / "frames.gpkg");
   {
