@@ -217,10 +217,24 @@ int RunRun(int argc, char** argv) {
   mosaicker.SetReplay(false);
   progress.Update(done, true);
   progress.Done();
-  mosaicker.Finish();
-  const std::string placements_path =
+  // A store that fails to close (frames.gpkg locked by another program past the closing wait,
+  // a full disk) still gets the run's placements and report when they can be written: the
+  // fusion has finished, and the error is said last, after the summary, with its fix.
+  std::string finish_error;
+  try {
+    mosaicker.Finish();
+  } catch (const OutputError& e) {
+    finish_error = e.what();
+  }
+  std::string placements_path =
       (std::filesystem::path(options.store_path) / "placements.json").string();
-  mosaicker.WritePlacements(placements_path);
+  try {
+    mosaicker.WritePlacements(placements_path);
+  } catch (const OutputError& e) {
+    if (finish_error.empty()) throw;
+    std::cerr << "run: warning: " << e.what() << "\n";
+    placements_path.clear();
+  }
   const MosaickerSummary s = mosaicker.summary();
   const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
   std::cerr << "run: " << s.frames_placed << " frames placed (" << s.frames_registered
@@ -251,8 +265,9 @@ int RunRun(int argc, char** argv) {
       mosaicker.store() ? mosaicker.store()->stats().frames_gpkg_locked : 0;
   if (frames_gpkg_locked > 0) {
     std::cerr << "run: warning: another program held frames.gpkg locked at " << frames_gpkg_locked
-              << " of its updates; those footprints waited in "
-                 "manifest.json (frames.pending) and reached frames.gpkg with a later update\n";
+              << " of its updates; those footprints waited in manifest.json (frames.pending)"
+              << (finish_error.empty() ? " and reached frames.gpkg with a later update\n"
+                                       : ", where the closing update had to leave them\n");
   }
   std::cerr << "run: store " << options.store_path
             << " (open mosaic.vrt or irmosaic.qlr in QGIS; irmosaic_live.qlr, with the IRMOSAIC "
@@ -290,17 +305,26 @@ int RunRun(int argc, char** argv) {
         {"file_mib", static_cast<double>(s.fusion.spill_file_bytes) / 1048576.0},
         {"read_back", s.fusion.spill_reads},
         {"file_error", s.fusion.spill_error}}},
-      {"placements", placements_path}};
+      {"placements",
+       placements_path.empty() ? nlohmann::json(nullptr) : nlohmann::json(placements_path)},
+      {"finish_error",
+       finish_error.empty() ? nlohmann::json(nullptr) : nlohmann::json(finish_error)}};
   const std::string report_path =
       args.Get("--report").empty()
           ? (std::filesystem::path(options.store_path) / "run_report.json").string()
           : args.Get("--report");
-  std::ofstream(report_path) << report.dump(2) << "\n";
+  if (!(std::ofstream(report_path) << report.dump(2) << "\n")) {
+    std::cerr << "run: warning: cannot write " << report_path << " (disk full or not writable?)\n";
+  }
   if (!s.fusion.spill_error.empty()) {
     std::cerr << "irmosaic run: warning: the frame image file in the store folder failed ("
               << s.fusion.spill_error
               << "): images it refused stayed in memory, a failed read skipped that re-render. "
                  "Fix: free disk space there, or --images-in-memory 0\n";
+  }
+  if (!finish_error.empty()) {
+    std::cerr << "irmosaic run: error: " << finish_error << "\n";
+    return 1;
   }
   if (s.frames_placed == 0) {
     std::cerr << "irmosaic run: error: no frame could be placed (see the warnings above)\n";

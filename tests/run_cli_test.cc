@@ -81,9 +81,10 @@ class RunCliTest : public ::testing::Test {
   }
 
   // Starts `irmosaic run` on `flight` (the test flight by default) into `store` as a child
-  // process (stderr discarded) with `extra` arguments, for a test to kill; returns its pid.
+  // process (stderr to `log_path`, discarded by default) with `extra` arguments, for a test to
+  // kill or wait for; returns its pid.
   static pid_t StartRun(const std::string& store, const std::vector<std::string>& extra,
-                        std::string flight = "") {
+                        std::string flight = "", const std::string& log_path = "/dev/null") {
     if (flight.empty()) flight = dir_ + "/flight";
     std::vector<std::string> args = {"irmosaic", "run",
                                      "--frames", flight + "/frames.csv",
@@ -96,7 +97,7 @@ class RunCliTest : public ::testing::Test {
     argv.push_back(nullptr);
     const pid_t child = fork();
     if (child == 0) {
-      std::freopen("/dev/null", "w", stderr);
+      std::freopen(log_path.c_str(), "w", stderr);
       execv(testing::CliPath().c_str(), argv.data());
       _exit(127);
     }
@@ -439,6 +440,121 @@ TEST_F(RunCliTest, KillNineThenResumeLeavesEveryFrameOnDiskWhereTheSolutionPutsI
   std::printf("overview pixels differing from level 0 by more than 8 counts: %lld\n",
               static_cast<long long>(stale));
   EXPECT_EQ(stale, 0);
+}
+
+// Another program holding frames.gpkg's write lock from the store's first moment to past the
+// run's end (a script's transaction, a GIS editing the footprints): the live publishes go on
+// without frames.gpkg (the records wait in manifest.json), the closing one gives up after its
+// 10 s wait and `run` exits 1 with the error and its fix, but only after writing placements.json
+// and run_report.json (before session 46 it wrote neither). Once the lock is gone, `--resume`
+// puts every footprint in frames.gpkg.
+TEST_F(RunCliTest, AFramesGpkgLockedPastTheEndStillGetsPlacementsAndReportAndResumeCompletes) {
+  const std::string store = dir_ + "/locked.irmosaic";
+  const std::string gpkg = store + "/frames.gpkg";
+  int go[2], told[2];
+  ASSERT_EQ(pipe(go), 0);
+  ASSERT_EQ(pipe(told), 0);
+  // The lock holder: waits for frames.gpkg (the store creates it with its first frame), takes
+  // its write lock with a transaction holding a write, says 'h', holds it until `go` says
+  // anything (or closes), rolls back and says 'r'. 'x' if it could not lock within 120 s.
+  const pid_t holder = fork();
+  if (holder == 0) {
+    close(go[1]);
+    close(told[0]);
+    CPLPushErrorHandler(CPLQuietErrorHandler);
+    GDALDataset* ds = nullptr;
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+    while (std::chrono::steady_clock::now() < deadline) {
+      if (fs::exists(gpkg)) {
+        ds = GDALDataset::Open(gpkg.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
+        CPLErrorReset();
+        if (ds != nullptr && ds->StartTransaction() == OGRERR_NONE) {
+          ds->ExecuteSQL("UPDATE frames SET status = 'held by another process' WHERE fid < 0",
+                         nullptr, nullptr);
+          if (CPLGetLastErrorType() == CE_None) break;
+          ds->RollbackTransaction();
+        }
+        if (ds != nullptr) GDALClose(ds);
+        ds = nullptr;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+    char said = ds != nullptr ? 'h' : 'x';
+    if (write(told[1], &said, 1) != 1 || ds == nullptr) _exit(3);
+    char byte = 0;
+    (void)!read(go[0], &byte, 1);
+    ds->RollbackTransaction();
+    GDALClose(ds);
+    said = 'r';
+    _exit(write(told[1], &said, 1) == 1 ? 0 : 4);
+  }
+  close(go[0]);
+  close(told[1]);
+  const std::string log_path = store + ".log";
+  const pid_t run = StartRun(store, {}, "", log_path);
+  char said = 0;
+  const bool locked = read(told[0], &said, 1) == 1 && said == 'h';
+  // The run, under the lock to its end: its closing wait is 10 s.
+  int status = -1;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(300);
+  while (waitpid(run, &status, WNOHANG) == 0) {
+    if (std::chrono::steady_clock::now() > deadline) {
+      kill(run, SIGKILL);
+      waitpid(run, &status, 0);
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::string log;
+  {
+    std::ifstream in(log_path);
+    log.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  // What frames.gpkg held while locked (the holder's transaction writes nothing to read).
+  int64_t in_gpkg_while_locked = -1;
+  {
+    GDALDatasetUniquePtr ds(GDALDataset::Open(gpkg.c_str(), GDAL_OF_VECTOR | GDAL_OF_READONLY));
+    if (ds && ds->GetLayerByName("frames")) {
+      in_gpkg_while_locked = ds->GetLayerByName("frames")->GetFeatureCount();
+    }
+  }
+  const char byte = 'g';
+  const bool released = write(go[1], &byte, 1) == 1 && read(told[0], &said, 1) == 1 && said == 'r';
+  close(go[1]);
+  close(told[0]);
+  int holder_status = 0;
+  waitpid(holder, &holder_status, 0);
+  ASSERT_TRUE(locked) << "the second process could not lock " << gpkg;
+  ASSERT_TRUE(released);
+  ASSERT_TRUE(WIFEXITED(status)) << "the run did not end within 300 s: " << log;
+  EXPECT_EQ(WEXITSTATUS(status), 1) << log;
+  EXPECT_NE(log.find("irmosaic run: error:"), std::string::npos) << log;
+  EXPECT_NE(log.find("frames.gpkg"), std::string::npos) << log;
+  EXPECT_NE(log.find("--resume"), std::string::npos) << log;
+  // The lock held back the footprints, not the mosaic: every frame placed and in the manifest.
+  const nlohmann::json manifest = nlohmann::json::parse(std::ifstream(store + "/manifest.json"));
+  const size_t pending = manifest["frames"]["pending"].size();
+  std::printf("under the lock: %lld records in frames.gpkg, %zu pending in manifest.json\n",
+              static_cast<long long>(in_gpkg_while_locked), pending);
+  EXPECT_GE(pending, 1u);
+  EXPECT_EQ(in_gpkg_while_locked + static_cast<int64_t>(pending), 64);
+  // The placements and the report, written in spite of the failed close.
+  ASSERT_TRUE(fs::exists(store + "/placements.json")) << log;
+  EXPECT_EQ(Placements::LoadJson(store + "/placements.json").frames.size(), 64u);
+  ASSERT_TRUE(fs::exists(store + "/run_report.json")) << log;
+  const nlohmann::json report = nlohmann::json::parse(std::ifstream(store + "/run_report.json"));
+  EXPECT_EQ(report["frames_placed"], 64);
+  EXPECT_GE(report["frames_gpkg_locked"].get<int64_t>(), 1);
+  ASSERT_TRUE(report["finish_error"].is_string()) << report.dump(2);
+  EXPECT_NE(report["finish_error"].get<std::string>().find("frames.gpkg"), std::string::npos);
+
+  // The lock gone, a resume completes the store: every footprint in frames.gpkg.
+  ASSERT_EQ(RunCli(store, "--resume", &log), 0) << log;
+  const std::vector<double> lag = FootprintLagPx(store);
+  EXPECT_EQ(lag.size(), 64u);
+  EXPECT_LE(lag.empty() ? 1e9 : *std::max_element(lag.begin(), lag.end()), 0.25 + 1e-3);
+  const nlohmann::json resumed = nlohmann::json::parse(std::ifstream(store + "/run_report.json"));
+  EXPECT_TRUE(resumed["finish_error"].is_null()) << resumed.dump(2);
 }
 
 // Bad video input through the whole command: the flight's frames as an MJPEG AVI (8-bit), one
