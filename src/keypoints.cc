@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <opencv2/imgproc.hpp>
 
+#include "buffer_view.h"
+#include "corner_response.h"
 #include "irmosaic/error.h"
 
 namespace irmosaic {
@@ -45,13 +47,16 @@ std::vector<Eigen::Vector2d> DetectKeypoints(const cv::Mat& image, const cv::Mat
   const int margin = options.block_size + static_cast<int>(3 * options.presmooth_sigma_px) + 1;
   const cv::Rect outer = (box + cv::Size(2 * margin, 2 * margin) - cv::Point(margin, margin)) &
                          cv::Rect(0, 0, image.cols, image.rows);
-  cv::Mat region;
+  // Buffers per thread, grown to the largest window seen: no allocation per call once warm.
+  thread_local cv::Mat region_backing, response_backing;
+  cv::Mat region = BufferView(&region_backing, outer.size(), CV_32F);
   image(outer).convertTo(region, CV_32F);
   if (options.presmooth_sigma_px > 0) {
     cv::GaussianBlur(region, region, cv::Size(), options.presmooth_sigma_px);
   }
-  cv::Mat response;
-  cv::cornerMinEigenVal(region, response, options.block_size, 3);
+  // cv::cornerMinEigenVal(region, response, block_size, 3), in one pass (src/corner_response.h).
+  cv::Mat response = BufferView(&response_backing, outer.size(), CV_32F);
+  corner::MinEigenResponse(region, options.block_size, &response);
 
   struct Candidate {
     float response;

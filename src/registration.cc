@@ -644,6 +644,27 @@ static double StandardDeviation(const cv::Mat& image_f) {
     const float* p = image_f.ptr<float>(y);
     float s[kLanes] = {}, q[kLanes] = {};
     int x = 0;
+#if defined(__SSE2__)
+    // The lanes in registers (as in NoiseSigma below): the same operations per lane, in the
+    // same order.
+    {
+      const __m128 r = _mm_set1_ps(ref);
+      __m128 s0 = _mm_setzero_ps(), s1 = _mm_setzero_ps(), q0 = _mm_setzero_ps(),
+             q1 = _mm_setzero_ps();
+      for (; x + kLanes <= cols; x += kLanes) {
+        const __m128 v0 = _mm_sub_ps(_mm_loadu_ps(p + x), r);
+        const __m128 v1 = _mm_sub_ps(_mm_loadu_ps(p + x + 4), r);
+        s0 = _mm_add_ps(s0, v0);
+        s1 = _mm_add_ps(s1, v1);
+        q0 = _mm_add_ps(q0, _mm_mul_ps(v0, v0));
+        q1 = _mm_add_ps(q1, _mm_mul_ps(v1, v1));
+      }
+      _mm_storeu_ps(s, s0);
+      _mm_storeu_ps(s + 4, s1);
+      _mm_storeu_ps(q, q0);
+      _mm_storeu_ps(q + 4, q1);
+    }
+#endif
     for (; x + kLanes <= cols; x += kLanes) {
       for (int k = 0; k < kLanes; ++k) {
         const float v = p[x + k] - ref;
@@ -697,6 +718,28 @@ static double NoiseSigma(const cv::Mat& image_f, std::vector<float>* row_buffer)
     for (; x < cols; ++x) down_second[x] = up[x] - 2.0f * mid[x] + down[x];
     float lanes[kLanes] = {};
     x = 1;
+#if defined(__SSE2__)
+    // The lanes in registers: the compiler's vector loop kept them in memory, a store and a
+    // reload per 4 pixels (half of the function's time). The same operations per lane, in the
+    // same order, so the same sums.
+    {
+      const __m128 sign = _mm_set1_ps(-0.0f);
+      __m128 low = _mm_setzero_ps(), high = _mm_setzero_ps();
+      for (; x + kLanes < cols; x += kLanes) {
+        const float* d = down_second + x;
+        low = _mm_add_ps(
+            low, _mm_andnot_ps(sign, _mm_add_ps(_mm_sub_ps(_mm_loadu_ps(d - 1),
+                                                           _mm_mul_ps(two, _mm_loadu_ps(d))),
+                                                _mm_loadu_ps(d + 1))));
+        high = _mm_add_ps(
+            high, _mm_andnot_ps(sign, _mm_add_ps(_mm_sub_ps(_mm_loadu_ps(d + 3),
+                                                            _mm_mul_ps(two, _mm_loadu_ps(d + 4))),
+                                                 _mm_loadu_ps(d + 5))));
+      }
+      _mm_storeu_ps(lanes, low);
+      _mm_storeu_ps(lanes + 4, high);
+    }
+#endif
     for (; x + kLanes < cols; x += kLanes) {
       for (int k = 0; k < kLanes; ++k) {
         lanes[k] +=
