@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "bank_projection.h"
 #include "cubic_weights.h"
 #include "irmosaic/error.h"
 
@@ -597,8 +598,11 @@ bool LsmMatcher::ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p,
   cv::Mat t;
   if (bank_.rows() == 0 || !TemplatePatch(templ, p, r, &t)) return false;
   // Design images of the inverse-compositional LSM, from the template patch: constant over
-  // the iterations, so their 21 projections are computed once per key point.
-  RowMatrixF design(n, 7);
+  // the iterations, so their 21 projections are computed once per key point. One image after
+  // the other (image k at k n), for the projection.
+  thread_local std::vector<float> design_images;  // Grown once, kept for the thread's pairs.
+  design_images.resize(static_cast<size_t>(7) * n);
+  float* design = design_images.data();
   const double inv_r = 1.0 / r;
   for (int v = 0; v < size; ++v) {
     const float* up = t.ptr<float>(v) + 1;
@@ -609,19 +613,28 @@ bool LsmMatcher::ProjectTemplate(const cv::Mat& templ, const Eigen::Vector2d& p,
       const float xn = static_cast<float>((u - r) * inv_r);
       const float ix = 0.5f * (mid[u + 1] - mid[u - 1]);
       const float iy = 0.5f * (down[u] - up[u]);
-      auto row = design.row(v * size + u);
-      row << ix, xn * ix, yn * ix, iy, xn * iy, yn * iy, mid[u];
+      const int i = v * size + u;
+      design[i] = ix;
+      design[n + i] = xn * ix;
+      design[2 * n + i] = yn * ix;
+      design[3 * n + i] = iy;
+      design[4 * n + i] = xn * iy;
+      design[5 * n + i] = yn * iy;
+      design[6 * n + i] = mid[u];
     }
   }
-  *projected = (bank_ * design).cast<double>();  // 21 x 7
+  projected->resize(bank_.rows(), 7);  // 21 x 7, column-major.
+  bank::Project(bank_.data(), static_cast<int>(bank_.rows()), n, design, 7, projected->data(),
+                static_cast<int>(bank_.rows()));
   return true;
 }
 
 bool LsmMatcher::ProjectBase(const cv::Mat& base, const Eigen::Vector2d& c,
                              const Eigen::Matrix2d& m, Eigen::VectorXd* responses) {
   if (bank_.rows() == 0 || !WarpPatch(base, c, m, radius_, &warped_)) return false;
-  const Eigen::Map<const Eigen::VectorXf> w(warped_.ptr<float>(), warped_.total());
-  *responses = (bank_ * w).cast<double>();
+  responses->resize(bank_.rows());
+  bank::Project(bank_.data(), static_cast<int>(bank_.rows()), static_cast<int>(warped_.total()),
+                warped_.ptr<float>(), 1, responses->data(), 1);
   return true;
 }
 
@@ -673,8 +686,10 @@ LsmResult LsmMatcher::MatchFastProjected(const cv::Mat& base, const Eigen::Matri
       result.reason = "the warped patch left the base image";
       return result;
     }
-    const Eigen::Map<const Eigen::VectorXf> w(warped_.ptr<float>(), n);
-    const Eigen::VectorXd b = (bank_ * w).cast<double>() - gain * projected.col(6);
+    Eigen::VectorXd b(bank_.rows());
+    bank::Project(bank_.data(), static_cast<int>(bank_.rows()), n, warped_.ptr<float>(), 1,
+                  b.data(), 1);
+    b -= gain * projected.col(6);
     a.leftCols(6) = gain * projected.leftCols(6);
     if (unknowns == 7) a.col(6) = projected.col(6);
     // Translation (and gain) first: under heavy noise a first full affine step from a
