@@ -24,6 +24,7 @@
 #include <thread>
 #include <vector>
 
+#include "frames_gpkg_lock.h"
 #include "irmosaic/evaluator.h"
 #include "irmosaic/local_frame.h"
 #include "irmosaic/simulator.h"
@@ -465,26 +466,14 @@ TEST_F(RunCliTest, AFramesGpkgLockedPastTheEndStillGetsPlacementsAndReportAndRes
     GDALDataset* ds = nullptr;
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
     while (std::chrono::steady_clock::now() < deadline) {
-      if (fs::exists(gpkg)) {
-        ds = GDALDataset::Open(gpkg.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
-        CPLErrorReset();
-        if (ds != nullptr && ds->StartTransaction() == OGRERR_NONE) {
-          ds->ExecuteSQL("UPDATE frames SET status = 'held by another process' WHERE fid < 0",
-                         nullptr, nullptr);
-          if (CPLGetLastErrorType() == CE_None) break;
-          ds->RollbackTransaction();
-        }
-        if (ds != nullptr) GDALClose(ds);
-        ds = nullptr;
-      }
+      if (fs::exists(gpkg) && (ds = testing::LockFramesGpkg(gpkg)) != nullptr) break;
       std::this_thread::sleep_for(std::chrono::milliseconds(2));
     }
     char said = ds != nullptr ? 'h' : 'x';
     if (write(told[1], &said, 1) != 1 || ds == nullptr) _exit(3);
     char byte = 0;
     (void)!read(go[0], &byte, 1);
-    ds->RollbackTransaction();
-    GDALClose(ds);
+    testing::UnlockFramesGpkg(ds);
     said = 'r';
     _exit(write(told[1], &said, 1) == 1 ? 0 : 4);
   }

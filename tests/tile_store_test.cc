@@ -33,6 +33,7 @@
 
 #include "../src/simd_dispatch.h"
 #include "../src/store_internal.h"
+#include "frames_gpkg_lock.h"
 #include "irmosaic/error.h"
 #include "irmosaic/local_frame.h"
 #include "manifest_tiles.h"
@@ -2363,19 +2364,11 @@ TEST(TileStoreTest, AFramesGpkgLockedByAnotherProgramDefersItsRecordsNotThePubli
     GDALAllRegister();
     char tenths = 0;
     while (read(go[0], &tenths, 1) == 1) {
-      GDALDataset* ds = GDALDataset::Open(gpkg.c_str(), GDAL_OF_VECTOR | GDAL_OF_UPDATE);
-      char said = 'x';
-      CPLErrorReset();
-      if (ds != nullptr && ds->StartTransaction() == OGRERR_NONE) {
-        // A write in the transaction takes SQLite's write lock until the rollback.
-        ds->ExecuteSQL("UPDATE frames SET status = 'held by another process' WHERE fid = 1",
-                       nullptr, nullptr);
-        if (CPLGetLastErrorType() == CE_None) said = 'h';
-      }
+      GDALDataset* ds = testing::LockFramesGpkg(gpkg.string());
+      char said = ds != nullptr ? 'h' : 'x';
       if (write(told[1], &said, 1) != 1 || said != 'h') _exit(3);
       std::this_thread::sleep_for(std::chrono::milliseconds(100 * tenths));
-      ds->RollbackTransaction();
-      GDALClose(ds);
+      testing::UnlockFramesGpkg(ds);
       said = 'r';
       if (write(told[1], &said, 1) != 1) _exit(4);
     }
