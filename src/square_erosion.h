@@ -79,13 +79,22 @@ inline cv::Mat SquaresInsideMask(const cv::Mat& mask, const cv::Rect& region, in
     return eroded(cv::Rect(half, half, region.width, region.height));
   }
   cv::Mat out(region.size(), CV_8U);
-  for (int y = 0; y < region.height; ++y) {
-    // Region row y is outer row y + half; its square spans outer rows y .. y + 2 half.
-    int a = 0, b = outer.width;
-    for (int k = y; k <= y + 2 * half && a < b; ++k) {
-      a = std::max(a, lo[k]);
-      b = std::min(b, hi[k]);
-    }
+  // Region row y is outer row y + half; its square spans outer rows y .. y + 2 half: the
+  // largest lo and the smallest hi over those rows, by monotonic queues of row indices (one
+  // pass, where a scan of the square's rows per row cost 2 half + 1 steps each).
+  std::vector<int> most_lo(outer.height), least_hi(outer.height);
+  int lo_head = 0, lo_tail = 0, hi_head = 0, hi_tail = 0;
+  for (int k = 0; k < outer.height; ++k) {
+    while (lo_tail > lo_head && lo[most_lo[lo_tail - 1]] <= lo[k]) --lo_tail;
+    most_lo[lo_tail++] = k;
+    while (hi_tail > hi_head && hi[least_hi[hi_tail - 1]] >= hi[k]) --hi_tail;
+    least_hi[hi_tail++] = k;
+    const int y = k - 2 * half;  // The region row whose square ends at outer row k.
+    if (y < 0) continue;
+    while (most_lo[lo_head] < y) ++lo_head;
+    while (least_hi[hi_head] < y) ++hi_head;
+    int a = std::max(0, lo[most_lo[lo_head]]);
+    int b = std::min(outer.width, hi[least_hi[hi_head]]);
     // Outer x in [a, b) is region x in [a - half, b - half).
     a = std::clamp(a - half, 0, region.width);
     b = std::clamp(b - half, a, region.width);
