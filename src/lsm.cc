@@ -24,8 +24,6 @@
 namespace irmosaic {
 namespace {
 
-using RowMatrixF = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-
 // The Freeman-Adelson table (their Fig. 13 / Table 1), g = exp(-(x^2 + y^2)).
 double BasisValue(int k, double x, double y) {
   const double g = std::exp(-(x * x + y * y));

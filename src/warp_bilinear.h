@@ -3,9 +3,10 @@
 // of 8- and 16-bit frames. OpenCV 4.6 warps 16-bit images with scalar code (its remap has vector
 // code for 8-bit images only), and for either depth quantises positions to 1/32 px and builds
 // fixed-point maps before remapping; this computes each position in float and samples the four
-// neighbours with AVX2 gathers where the CPU has them. The scalar path computes every pixel
-// with the same float operations in the same order (no fused multiply-add), so the output does
-// not depend on the CPU. Not installed.
+// neighbours with AVX2 where the CPU has it, by gather instructions or by eight scalar loads,
+// whichever this CPU runs faster (measured once, at the first warp). The scalar path computes every
+// pixel with the same float operations in the same order (no fused multiply-add), so the output
+// does not depend on the CPU. Not installed.
 
 #include <opencv2/core.hpp>
 
@@ -20,5 +21,19 @@ bool WarpBilinear(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* 
 
 // Tests: the scalar path alone (the AVX2 one is chosen by simd::Avx2()).
 bool WarpBilinearScalar(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst);
+
+// How the AVX2 path reads a pixel pair per lane: AVX2's gather instruction, or eight scalar
+// loads put together. Same values; on some Intel cores the gather is much the slower.
+enum class GatherPath { kHardware, kEmulated };
+
+// Tests and benchmarks: the AVX2 path with the given gather. False (dst untouched) when the CPU
+// has no AVX2 (or it is disabled) or WarpBilinear would refuse the input.
+bool WarpBilinearAvx2(const cv::Mat& src, const cv::Matx33d& src_from_dst, cv::Mat* dst,
+                      GatherPath gather);
+
+// The gather WarpBilinear uses on this machine: "hardware", "emulated", or "none" without
+// AVX2. The first call may run the measurement (1-2 ms, once per process); IRMOSAIC_WARP_GATHER =
+// hardware | emulated in the environment fixes the choice.
+const char* GatherPathName();
 
 }  // namespace irmosaic::warp

@@ -243,7 +243,8 @@ TEST(OrthorectifyTest, ExactBilinearWarpPlacesPixelsWithinTheRoundingOf16Bits) {
 // The own warp's AVX2 path (8 pixels at a time, chosen at run time) gives the very values of its
 // scalar path, for 16-bit and 8-bit frames: row lengths 1-37 (every tail), projective and affine
 // maps, positions far outside the frame (replicated border: the last row's last pixels, where
-// the 8-bit gathers read the buffer's last bytes) and behind the camera (clamped, no crash).
+// the 8-bit gathers read the buffer's last bytes) and behind the camera (clamped, no crash),
+// with the gather instruction and with the eight loads that stand in for it.
 TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
   if (!simd::Avx2()) GTEST_SKIP() << "this CPU has no AVX2: only the scalar path runs";
   const CameraModel camera = DefaultInfraredCamera();
@@ -275,6 +276,14 @@ TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
         ASSERT_TRUE(warp::WarpBilinear(src, m * shift, &fast));
         ASSERT_TRUE(warp::WarpBilinearScalar(src, m * shift, &scalar));
         ASSERT_EQ(cv::norm(fast, scalar, cv::NORM_INF), 0.0) << "width " << width;
+        // Both ways of reading the pixel pairs, whichever this machine chose.
+        for (const warp::GatherPath gather :
+             {warp::GatherPath::kHardware, warp::GatherPath::kEmulated}) {
+          cv::Mat path(3, width, depth, cv::Scalar(1));
+          ASSERT_TRUE(warp::WarpBilinearAvx2(src, m * shift, &path, gather));
+          ASSERT_EQ(cv::norm(path, scalar, cv::NORM_INF), 0.0)
+              << "width " << width << ", gather " << static_cast<int>(gather);
+        }
         compared += width * 3;
       }
     }
@@ -285,6 +294,10 @@ TEST(OrthorectifyTest, ExactBilinearWarpAvx2AndScalarPathsAgreeBitForBit) {
   EXPECT_FALSE(warp::WarpBilinear(cv::Mat(4, 4, CV_32F, cv::Scalar(1)), maps[3], &out));
   EXPECT_FALSE(warp::WarpBilinear(cv::Mat(4, 4, CV_8U, cv::Scalar(1)), maps[3], &out));
   EXPECT_FALSE(warp::WarpBilinear(cv::Mat(1, 4, CV_16U, cv::Scalar(1)), maps[3], &out));
+  EXPECT_FALSE(warp::WarpBilinearAvx2(cv::Mat(4, 4, CV_32F, cv::Scalar(1)), maps[3], &out,
+                                      warp::GatherPath::kEmulated));
+  const std::string chosen = warp::GatherPathName();
+  EXPECT_TRUE(chosen == "hardware" || chosen == "emulated") << chosen;
 }
 
 // 8-bit frames go through the same warp as 16-bit ones: the same samples held in either type
