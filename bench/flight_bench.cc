@@ -753,6 +753,7 @@ nlohmann::json RunMosaicker(const RunConfig& config) {
              s.fusion.solves ? s.fusion.total_solve_cpu_ms / s.fusion.solves : 0.0},
             {"optimizer_cpu_ms_per_frame", s.fusion.total_solve_cpu_ms / config.frames},
             {"rerendered_frames", s.fusion.rerendered_frames},
+            {"rerendered_ahead", s.fusion.rerendered_ahead},
             {"deferred_rerenders", s.fusion.deferred_rerenders},
             {"radiometric_rerenders", s.fusion.radiometric_rerenders},
             {"rerender_candidates", s.fusion.rerender_candidates},

@@ -861,6 +861,20 @@ class MapFusion::Impl {
   void Render(const cv::Mat& image, const std::vector<Eigen::Vector2d>& image_clip,
               const FramePlacement& placement, Renderer* renderer, bool refresh = false) {
     if (!sink_ || !options_.render) return;
+    RenderedFrame frame;
+    Prepare(image, image_clip, placement, renderer, &frame);
+    PaintPrepared(frame, refresh);
+  }
+
+  // A frame ready to paint: its orthoimage with the gain applied and its seam weights, views
+  // of the renderer's buffers (valid until that renderer prepares the next frame).
+  struct RenderedFrame {
+    cv::Mat image, weight;
+    cv::Point origin_px;
+  };
+
+  void Prepare(const cv::Mat& image, const std::vector<Eigen::Vector2d>& image_clip,
+               const FramePlacement& placement, Renderer* renderer, RenderedFrame* frame) {
     // The orthoimage and the weights live in the renderer's buffers (no allocation per frame
     // once warm); the gain is applied in place.
     OrthoImage out;
@@ -876,11 +890,83 @@ class MapFusion::Impl {
     } else {
       FeatherWeight(out, &weight);
     }
+    frame->image = compensated;
+    frame->weight = weight;
+    frame->origin_px = out.origin_px;
+  }
+
+  void PaintPrepared(const RenderedFrame& frame, bool refresh) {
     if (refresh) {
-      sink_->Repaint(compensated, weight, out.origin_px);
+      sink_->Repaint(frame.image, frame.weight, frame.origin_px);
     } else {
-      sink_->Paint(compensated, weight, out.origin_px);
+      sink_->Paint(frame.image, frame.weight, frame.origin_px);
     }
+  }
+
+  // The final solve's re-renders, `frames` in order, with the orthoimages and weights made on a
+  // registration helper thread one frame ahead of the painting on this thread (the two
+  // renderers' buffers in turn), so the warps overlap the store's painting; the paints, their
+  // order and FramePlaced are as the one-thread loop does them. `done(k)` runs on this thread
+  // after frame k is painted.
+  void RerenderAhead(const std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>*>& frames,
+                     std::map<size_t, ImageRef>& images, const std::function<void(size_t)>& done) {
+    Renderer* renderers[2] = {&foreground_, &background_};
+    RenderedFrame ready[2];
+    bool has_image[2] = {false, false};
+    std::mutex mu;
+    std::condition_variable changed;
+    size_t prepared = 0, painted = 0;
+    bool abort = false;
+    const std::thread::id painter = std::this_thread::get_id();
+    auto stop = [&] {
+      std::lock_guard<std::mutex> lock(mu);
+      abort = true;
+      changed.notify_all();
+    };
+    registration_helpers_->Run(1, [&] {
+      if (std::this_thread::get_id() != painter) {
+        for (size_t k = 0; k < frames.size(); ++k) {
+          {
+            std::unique_lock<std::mutex> lock(mu);
+            // Frame k takes the buffers frame k - 2 was painted from.
+            changed.wait(lock, [&] { return abort || k < painted + 2; });
+            if (abort) return;
+          }
+          try {
+            const auto& [frame, placement] = *frames[k];
+            const cv::Mat image = ImageOf(images[frame->slot]);
+            has_image[k % 2] = !image.empty();
+            if (!image.empty()) {
+              Prepare(image, frame->data.image_clip, placement, renderers[k % 2], &ready[k % 2]);
+            }
+          } catch (...) {
+            stop();
+            throw;
+          }
+          std::lock_guard<std::mutex> lock(mu);
+          prepared = k + 1;
+          changed.notify_all();
+        }
+        return;
+      }
+      for (size_t k = 0; k < frames.size(); ++k) {
+        {
+          std::unique_lock<std::mutex> lock(mu);
+          changed.wait(lock, [&] { return abort || prepared > k; });
+          if (abort) return;
+        }
+        try {
+          if (has_image[k % 2]) PaintPrepared(ready[k % 2], /*refresh=*/true);
+          done(k);
+        } catch (...) {
+          stop();
+          throw;
+        }
+        std::lock_guard<std::mutex> lock(mu);
+        painted = k + 1;
+        changed.notify_all();
+      }
+    });
   }
 
   // Seam weight of an undistorted frame: its footprint is the convex quadrilateral of the
@@ -1231,7 +1317,34 @@ class MapFusion::Impl {
     // at full load the writer keeps to the newest frames as without them.
     const size_t budget = final_solve ? 0 : static_cast<size_t>(options_.max_rerenders_per_solve);
     size_t rendered_count = 0, settled_rendered = 0;
+    // The final solve re-renders every frame that moved (no budget, no backlog): with a helper
+    // thread idle, the next frame's warp runs beside this one's painting.
+    bool rendered_ahead = false;
+    if (final_solve && last_slot == SIZE_MAX && registration_helpers_ && sink_ && options_.render &&
+        moved.size() >= 2) {
+      std::vector<std::pair<std::shared_ptr<Held>, FramePlacement>*> chosen;
+      for (auto& m : moved) {
+        if (settled_slots.count(m.first->slot) > 0) {
+          std::lock_guard<std::mutex> lock(mu_);
+          if (m.first->left_fusion) continue;
+        }
+        chosen.push_back(&m);
+      }
+      RerenderAhead(chosen, images, [&](size_t k) {
+        const auto& [frame, placement] = *chosen[k];
+        std::lock_guard<std::mutex> records(records_mu_);
+        {
+          std::lock_guard<std::mutex> lock(mu_);
+          frame->rendered = placement;
+        }
+        sink_->FramePlaced(placement);
+        ++rendered_count;
+        settled_rendered += settled_slots.count(frame->slot) > 0 ? 1 : 0;
+      });
+      rendered_ahead = true;
+    }
     for (const auto& [frame, placement] : moved) {
+      if (rendered_ahead) break;
       const bool forced = forced_slots.count(frame->slot) > 0;
       if (!forced && budget > 0 && rendered_count >= budget) break;
       const double backlog_s = may_defer && sink_ ? sink_->OutputBacklogSeconds() : 0.0;
@@ -1258,6 +1371,7 @@ class MapFusion::Impl {
     {
       std::lock_guard<std::mutex> lock(mu_);
       stats_.rerendered_frames += static_cast<int64_t>(rendered_count);
+      if (rendered_ahead) stats_.rerendered_ahead += static_cast<int64_t>(rendered_count);
       stats_.settled_rerenders += static_cast<int64_t>(settled_rendered);
       // The budget's re-renders the output's backlog left to the next solve.
       const size_t chosen = budget > 0 ? std::min(budget, moved.size()) : moved.size();

@@ -122,6 +122,31 @@ inline PairRegisterFn IdealRegistrar(const Sweep& s, double noise_px, uint32_t s
   };
 }
 
+// Ties from the true relative homography on a grid inside the overlap, with 0.2 px of noise
+// seeded by the pair alone: the same ties whatever the order or thread of the calls.
+inline PairMatch PairSeededTies(const Sweep& s, const FusionFrame& base, const FusionFrame& templ) {
+  std::mt19937 rng(static_cast<uint32_t>(base.index * 1000 + templ.index));
+  std::normal_distribution<double> noise(0.0, 0.2);
+  const Eigen::Matrix3d base_from_templ = s.truth[base.index].inverse() * s.truth[templ.index];
+  PairMatch m;
+  for (int y = 8; y < s.camera.height; y += 40) {
+    for (int x = 8; x < s.camera.width; x += 40) {
+      const Eigen::Vector2d pb = ApplyHomography(base_from_templ, {x, y});
+      if (pb.x() < 8 || pb.y() < 8 || pb.x() > s.camera.width - 8 || pb.y() > s.camera.height - 8) {
+        continue;
+      }
+      const double ty = y + noise(rng);  // One draw a statement (argument order is unspecified).
+      m.template_points.emplace_back(x + noise(rng), ty);
+      const double by = pb.y() + noise(rng);
+      m.base_points.emplace_back(pb.x() + noise(rng), by);
+    }
+  }
+  m.ok = m.base_points.size() >= 8;
+  if (!m.ok) m.reason = "too little overlap";
+  m.base_from_template = base_from_templ;
+  return m;
+}
+
 // Placement RMSE after removing the best global similarity between run and truth: how well
 // the frames fit each other (seams), apart from where POS put the whole mosaic.
 inline std::vector<double> RelativeRmse(const std::vector<FramePlacement>& placements,

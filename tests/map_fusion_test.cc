@@ -646,27 +646,7 @@ TEST(MapFusionTest, PairsRegisteredAtOnceGiveTheSamePlacements) {
     if (templ.index == throw_for_template && base.index != templ.index - 1) {
       throw std::runtime_error("registrar failure for frame " + std::to_string(templ.index));
     }
-    std::mt19937 rng(static_cast<uint32_t>(base.index * 1000 + templ.index));
-    std::normal_distribution<double> noise(0.0, 0.2);
-    const Eigen::Matrix3d base_from_templ = s.truth[base.index].inverse() * s.truth[templ.index];
-    PairMatch m;
-    for (int y = 8; y < s.camera.height; y += 40) {
-      for (int x = 8; x < s.camera.width; x += 40) {
-        const Eigen::Vector2d pb = ApplyHomography(base_from_templ, {x, y});
-        if (pb.x() < 8 || pb.y() < 8 || pb.x() > s.camera.width - 8 ||
-            pb.y() > s.camera.height - 8) {
-          continue;
-        }
-        const double ty = y + noise(rng);  // One draw a statement (argument order is unspecified).
-        m.template_points.emplace_back(x + noise(rng), ty);
-        const double by = pb.y() + noise(rng);
-        m.base_points.emplace_back(pb.x() + noise(rng), by);
-      }
-    }
-    m.ok = m.base_points.size() >= 8;
-    if (!m.ok) m.reason = "too little overlap";
-    m.base_from_template = base_from_templ;
-    return m;
+    return PairSeededTies(s, base, templ);
   };
   auto run = [&](int threads) {
     FusionOptions options;
@@ -848,6 +828,104 @@ TEST(MapFusionTest, HeldImagesOnDiskComeBackForPairsAndRerenders) {
   EXPECT_EQ(stats.radiometric_rerenders, 0);
   EXPECT_TRUE(stats.spill_error.empty()) << stats.spill_error;
   std::filesystem::remove_all(dir);
+}
+
+// The final solve's re-renders with a registration helper thread (registration_threads 2):
+// the helper makes each frame's orthoimage and weights while the frame before is painted. What
+// the sink gets is what the one-thread loop gives: the same repaints (origin, size, every
+// sample and weight), in the same order, each followed by its frame's FramePlaced, all on the
+// thread that called Finish.
+TEST(MapFusionTest, FinalRerendersWithAHelperThreadPaintWhatOneThreadPaints) {
+  const Sweep s = MakeSweep(36, 6, 2.0, 0.3, 31);
+  // Ties with noise drawn per pair: the same whichever thread registers a pair when.
+  auto registrar = [&s](const FusionFrame& base, const FusionFrame& templ) {
+    return PairSeededTies(s, base, templ);
+  };
+  struct RepaintSeen {
+    cv::Point origin;
+    cv::Size size;
+    double image_sum = 0, weight_sum = 0;
+    int64_t placed = -1;  // The FramePlaced that followed it.
+    std::thread::id thread;
+  };
+  struct RecordingSink : MosaicSink {
+    std::mutex mu;
+    bool finishing = false;
+    std::vector<RepaintSeen> repaints;
+    int64_t compare_at = -1;  // The repaint kept whole, to compare every sample.
+    cv::Mat kept_image, kept_weight;
+    void Paint(const cv::Mat&, const cv::Mat&, cv::Point) override {}
+    void Repaint(const cv::Mat& image, const cv::Mat& weight, cv::Point origin) override {
+      std::lock_guard<std::mutex> lock(mu);
+      if (!finishing) return;
+      repaints.push_back({origin, image.size(), cv::sum(image)[0], cv::sum(weight)[0], -1,
+                          std::this_thread::get_id()});
+      if (static_cast<int64_t>(repaints.size()) - 1 == compare_at) {
+        kept_image = image.clone();
+        kept_weight = weight.clone();
+      }
+    }
+    void FramePlaced(const FramePlacement& p) override {
+      std::lock_guard<std::mutex> lock(mu);
+      if (finishing && !repaints.empty() && repaints.back().placed < 0) {
+        repaints.back().placed = p.index;
+      }
+    }
+  };
+  auto run = [&](int threads, RecordingSink* sink, FusionStats* stats) {
+    FusionOptions options;
+    options.window_frames = 36;
+    options.solve_every_frames = 1000;  // No background solve: Finish's is the only one.
+    options.rerender_threshold_px = 0.0;
+    options.compensate_gain = false;
+    options.registration_threads = threads;
+    MapFusion fusion(options, s.camera, registrar, sink);
+    for (int64_t i = 0; i < 36; ++i) {
+      FusionFrame f;
+      f.index = i;
+      f.time_s = static_cast<double>(i) * 0.04;
+      // A ramp with the frame's own level: every sample depends on where the warp reads.
+      f.image = cv::Mat(s.camera.height, s.camera.width, CV_16U);
+      for (int y = 0; y < f.image.rows; ++y) {
+        for (int x = 0; x < f.image.cols; ++x) {
+          f.image.at<uint16_t>(y, x) = static_cast<uint16_t>(1000 + 11 * i + 3 * x + 5 * y);
+        }
+      }
+      f.pos_mosaic_from_image = s.pos[static_cast<size_t>(i)];
+      fusion.Push(std::move(f));
+    }
+    {
+      std::lock_guard<std::mutex> lock(sink->mu);
+      sink->finishing = true;
+    }
+    fusion.Finish();
+    *stats = fusion.stats();
+  };
+  RecordingSink one, two;
+  one.compare_at = two.compare_at = 17;
+  FusionStats one_stats, two_stats;
+  run(1, &one, &one_stats);
+  run(2, &two, &two_stats);
+  EXPECT_EQ(one_stats.rerendered_ahead, 0);
+  EXPECT_GE(two_stats.rerendered_ahead, 30);  // Nearly every frame moved in the final solve.
+  EXPECT_EQ(two_stats.rerendered_ahead, two_stats.rerendered_frames);
+  EXPECT_EQ(one_stats.rerendered_frames, two_stats.rerendered_frames);
+  ASSERT_EQ(one.repaints.size(), two.repaints.size());
+  ASSERT_GE(two.repaints.size(), 30u);
+  const std::thread::id caller = std::this_thread::get_id();
+  for (size_t k = 0; k < one.repaints.size(); ++k) {
+    const RepaintSeen &a = one.repaints[k], &b = two.repaints[k];
+    EXPECT_EQ(a.origin, b.origin) << "repaint " << k;
+    EXPECT_EQ(a.size, b.size) << "repaint " << k;
+    EXPECT_EQ(a.image_sum, b.image_sum) << "repaint " << k;
+    EXPECT_EQ(a.weight_sum, b.weight_sum) << "repaint " << k;
+    EXPECT_EQ(a.placed, b.placed) << "repaint " << k;
+    EXPECT_GE(b.placed, 0) << "repaint " << k << " had no FramePlaced after it";
+    EXPECT_EQ(b.thread, caller) << "repaint " << k;
+  }
+  ASSERT_FALSE(one.kept_image.empty());
+  EXPECT_EQ(cv::norm(one.kept_image, two.kept_image, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(one.kept_weight, two.kept_weight, cv::NORM_INF), 0.0);
 }
 
 // Background re-renders take what the output can absorb: while the sink reports its output

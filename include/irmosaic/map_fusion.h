@@ -189,6 +189,9 @@ struct FusionStats {
   int64_t solves = 0;
   int64_t full_solves = 0;  // Of them, those that refined the whole window (short_window_frames).
   int64_t rerendered_frames = 0;
+  // Of them, the final solve's (Finish) whose orthoimage a registration helper thread made
+  // while the frame before was painted (registration_threads > 1).
+  int64_t rerendered_ahead = 0;
   // Re-renders a background solve chose but left to the next one because the output was
   // behind (FusionOptions::max_output_backlog_s).
   int64_t deferred_rerenders = 0;
