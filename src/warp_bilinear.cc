@@ -69,8 +69,8 @@ void WarpRowsScalar(const cv::Mat& src, const cv::Matx33d& m, cv::Mat* dst, int 
 #if defined(__x86_64__)
 // The 32-bit words at byte offsets `offset` from `base`: one AVX2 gather instruction, or eight
 // scalar loads put together (kEmulated). The same values either way; which is faster depends on
-// the CPU (some Intel cores run gathers in microcode: on the Xeon this was measured on, 25
-// cycles a gather and the eight loads 1.55x faster in the warp).
+// the CPU (on the Intel Xeon of session 47 a gather took 25 cycles and the eight loads made the
+// warp 1.45-1.55x faster; why its gathers are that slow was not established).
 template <bool kEmulated>
 __attribute__((target("avx2"))) inline __m256i Gather32(const int* base, __m256i offset) {
   if constexpr (kEmulated) {
